@@ -1,0 +1,38 @@
+# ManiEval: `make demo` runs the service on embedded defaults, `make test` runs every check.
+# Both install what is missing first and are fast the second time.
+SHELL := /bin/bash
+VENV := .venv
+BIN := $(VENV)/bin
+INSTALLED := $(VENV)/.installed
+
+.PHONY: demo test lint system install bench clean
+
+system:
+	@scripts/system-deps.sh
+
+$(INSTALLED): pyproject.toml evaluator/sdk/pyproject.toml constraints.txt scripts/install-python.sh
+	@echo "Installing Python packages into $(VENV) (first time: a few minutes)"
+	@scripts/install-python.sh $(VENV)
+	@touch $@
+
+install: system $(INSTALLED)
+
+lint: install
+	$(BIN)/ruff format --check .
+	$(BIN)/ruff check .
+	$(BIN)/mypy
+
+test: lint
+	$(BIN)/pytest
+
+demo: install
+	$(BIN)/manieval evaluate --policy examples/policies/scripted --suite maniskill-core \
+		--phase dev --episodes 10
+	$(BIN)/manieval evaluate --policy examples/policies/random --suite maniskill-core \
+		--phase dev --episodes 10
+
+bench: install
+	$(BIN)/python bench/protocol_overhead.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache

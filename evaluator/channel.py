@@ -1,0 +1,84 @@
+"""How the episode loop talks to a policy: over the wire protocol, or in-process for baselines.
+
+The in-process channel exists so that tests and `bench/` can compare the protocol against a
+plain function call with everything else held equal; submissions always use `RemoteChannel`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+
+from evaluator.endpoint import PolicyEndpoint, PolicyRaised
+from evaluator.suite import Limits
+from manieval_sdk import Policy
+from manieval_sdk.serve import task_spec
+
+
+class PolicyChannel(Protocol):
+    """The three calls the evaluator makes of a policy during a task."""
+
+    def start_task(self, spec: dict[str, Any]) -> None: ...
+
+    def reset(self, obs: Any, info: dict[str, Any]) -> None: ...
+
+    def act(self, obs: Any) -> Any: ...
+
+
+class RemoteChannel:
+    """A policy in another process, behind a connected `PolicyEndpoint`."""
+
+    def __init__(self, endpoint: PolicyEndpoint, limits: Limits) -> None:
+        self._endpoint = endpoint
+        self._limits = limits
+        self._warm = False
+
+    def start_task(self, spec: dict[str, Any]) -> None:
+        """Send the task spec; the first act after it gets the generous timeout."""
+        self._endpoint.call(
+            {"type": "task", "spec": spec}, expect="ok", timeout=self._limits.first_call_timeout_s
+        )
+        self._warm = False
+
+    def reset(self, obs: Any, info: dict[str, Any]) -> None:
+        """Start an episode."""
+        self._endpoint.call(
+            {"type": "reset", "obs": obs, "info": info},
+            expect="ok",
+            timeout=self._limits.call_timeout_s,
+        )
+
+    def act(self, obs: Any) -> Any:
+        """One action; warm-up (JIT, lazy loading) is allowed the first-call timeout."""
+        timeout = self._limits.call_timeout_s if self._warm else self._limits.first_call_timeout_s
+        action = self._endpoint.act(obs, timeout=timeout)
+        self._warm = True
+        return action
+
+
+class InProcessChannel:
+    """A `Policy` object called directly: for baselines and benchmarks, never for submissions."""
+
+    def __init__(self, policy: Policy) -> None:
+        self._policy = policy
+
+    def start_task(self, spec: dict[str, Any]) -> None:
+        """Set the policy up for a task."""
+        self._guard(lambda: self._policy.setup(task_spec(spec)))
+
+    def reset(self, obs: Any, info: dict[str, Any]) -> None:
+        """Start an episode."""
+        self._guard(lambda: self._policy.reset(obs, info))
+
+    def act(self, obs: Any) -> Any:
+        """One action."""
+        action = self._guard(lambda: self._policy.act(obs))
+        return np.asarray(action)
+
+    @staticmethod
+    def _guard(call: Any) -> Any:
+        try:
+            return call()
+        except Exception as exc:
+            raise PolicyRaised(f"{type(exc).__name__}: {exc}") from exc

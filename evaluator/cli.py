@@ -1,0 +1,123 @@
+"""`manieval evaluate`: score a policy on a suite from the terminal, with live progress."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from evaluator.evaluation import evaluate as run_evaluation
+from evaluator.plan import EvaluationPlan, build_plan
+from evaluator.results import EpisodeResult, EvaluationResult
+from evaluator.sources import LocalDirectory, PolicySourceError
+from evaluator.suite import SuiteError, load_suite
+
+SECRET_ENV = "MANIEVAL_SEED_SECRET"
+console = Console(stderr=True, soft_wrap=True)  # error messages stay whole for grep and logs
+
+
+def evaluate(
+    policy: Annotated[Path, typer.Option(help="Policy directory containing policy.py.")],
+    suite: Annotated[str, typer.Option(help="Suite name (bundled) or YAML path.")] = (
+        "maniskill-core"
+    ),
+    phase: Annotated[str, typer.Option(help="Phase whose seeds to use.")] = "dev",
+    tasks: Annotated[
+        list[str] | None,
+        typer.Option("--tasks", help="Only these tasks (repeat or comma-separate)."),
+    ] = None,
+    episodes: Annotated[
+        int | None, typer.Option(min=1, help="Episodes per task (default: the suite's).")
+    ] = None,
+    workers: Annotated[int, typer.Option(min=1, max=64, help="Worker processes.")] = 1,
+    condition: Annotated[
+        list[str] | None, typer.Option("--condition", help="Only these conditions (repeatable).")
+    ] = None,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Write the result document here.")
+    ] = None,
+    video: Annotated[
+        Path | None,
+        typer.Option(help="Record each task's first episode to mp4s in this directory."),
+    ] = None,
+) -> None:
+    """Evaluate a policy on a benchmark suite and print per-task success rates."""
+    try:
+        plan = build_plan(
+            load_suite(suite),
+            phase,
+            tasks=_split(tasks),
+            conditions=_split(condition),
+            episodes=episodes,
+            secret=os.environ.get(SECRET_ENV, "").encode() or None,
+            record_video=video is not None,
+        )
+        source = LocalDirectory(policy)
+    except (SuiteError, PolicySourceError) as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(2) from None
+    result = _run_with_progress(plan, source, workers=workers, video=video)
+    Console().print(result_table(result))
+    if json_out is not None:
+        json_out.write_text(result.model_dump_json(indent=2))
+        console.print(f"result document written to {json_out}")
+    if result.abort is not None:
+        console.print(f"[red]evaluation aborted ({result.abort.kind}):[/red] {result.abort.reason}")
+        if result.abort.log_tail:
+            console.print("[dim]policy log tail:[/dim]\n" + result.abort.log_tail[-2000:])
+        raise typer.Exit(1)
+
+
+def _split(values: list[str] | None) -> list[str] | None:
+    if not values:
+        return None
+    return [part.strip() for value in values for part in value.split(",") if part.strip()]
+
+
+def _run_with_progress(
+    plan: EvaluationPlan, source: LocalDirectory, *, workers: int, video: Path | None
+) -> EvaluationResult:
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[successes]} ok"),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, console=console) as progress:
+        bars = [
+            progress.add_task(
+                f"{run.condition.name:>12} {run.env_id}", total=len(run.seeds), successes=0
+            )
+            for run in plan.runs
+        ]
+        successes = [0] * len(plan.runs)
+
+        def advance(run_index: int, episode: EpisodeResult) -> None:
+            successes[run_index] += episode.success_once
+            progress.update(bars[run_index], advance=1, successes=successes[run_index])
+
+        return run_evaluation(plan, source, workers=workers, video_dir=video, on_episode=advance)
+
+
+def result_table(result: EvaluationResult) -> Table:
+    """Success rate (Wilson 95% interval) per task and condition."""
+    table = Table(title=f"{result.suite.name} / {result.phase}: score {result.score:.3f}")
+    table.add_column("task")
+    for condition in result.conditions:
+        table.add_column(condition.name, justify="right")
+    rows: dict[str, list[str]] = {}
+    for condition in result.conditions:
+        for task in condition.tasks:
+            rows.setdefault(task.env_id, []).append(
+                f"{task.success_rate:.2f} [{task.ci_low:.2f}, {task.ci_high:.2f}]"
+            )
+    for env_id, cells in rows.items():
+        table.add_row(env_id, *cells)
+    table.add_row("[bold]score[/bold]", *(f"[bold]{c.score:.3f}[/bold]" for c in result.conditions))
+    return table

@@ -1,0 +1,170 @@
+"""The evaluator's side of the policy protocol: a listening socket and typed calls with limits.
+
+Every receive has a deadline (the per-call timeout, bounded by the evaluation's budget), frames
+from the policy are size-capped, and every way the policy can misbehave surfaces as one of the
+exceptions below, never as a hang or a crash of the evaluator.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from evaluator.results import FailureKind
+from manieval_sdk.wire import (
+    DEFAULT_MAX_FRAME_BYTES,
+    PROTOCOL_VERSION,
+    PeerClosed,
+    ProtocolError,
+    encode_frame,
+    recv_message,
+    send_message,
+)
+
+SOCKET_NAME = "policy.sock"
+
+
+class PolicyFailure(Exception):
+    """The policy broke the evaluation: the kind and reason end up in the result document."""
+
+    def __init__(self, kind: FailureKind, reason: str) -> None:
+        super().__init__(reason)
+        self.kind: FailureKind = kind
+        self.reason = reason
+
+
+class PolicyRaised(Exception):
+    """The policy's own code raised during a call; it ends the episode, not the evaluation."""
+
+
+class PolicyEndpoint:
+    """A Unix socket the policy connects to, and the calls the evaluator makes over it."""
+
+    def __init__(self, *, socket_dir: Path | None = None, max_frame_bytes: int = 1 << 20) -> None:
+        self._owned_dir = socket_dir is None
+        self.socket_dir = Path(socket_dir or tempfile.mkdtemp(prefix="manieval-"))
+        os.chmod(self.socket_dir, 0o700 if self._owned_dir else 0o755)
+        self.path = self.socket_dir / SOCKET_NAME
+        self.max_frame_bytes = max_frame_bytes
+        self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._listener.bind(str(self.path))
+        self._listener.listen(1)
+        self._conn: socket.socket | None = None
+        self.deadline = float("inf")
+
+    @property
+    def address(self) -> str:
+        """What the policy connects to (the SDK reads it from MANIEVAL_ENDPOINT)."""
+        return f"unix://{self.path}"
+
+    def accept(self, *, timeout: float, alive: Callable[[], bool]) -> None:
+        """Wait for the policy to connect, giving up early if its process has exited."""
+        deadline = time.monotonic() + self._bounded(timeout)
+        try:
+            while self._conn is None:
+                if not alive():
+                    raise PolicyFailure("policy_crashed", "the policy exited before connecting")
+                if time.monotonic() >= deadline:
+                    raise PolicyFailure(
+                        "policy_timeout", f"the policy did not connect within {timeout:g}s"
+                    )
+                self._listener.settimeout(0.1)
+                try:
+                    self._conn, _ = self._listener.accept()
+                except TimeoutError:
+                    continue
+        finally:
+            self._listener.close()
+
+    def call(self, message: dict[str, Any], *, expect: str, timeout: float) -> dict[str, Any]:
+        """Send one message and wait for its answer of type `expect`."""
+        conn = self._require_conn()
+        # Encoded before the try: an observation too large for the SDK is our problem, not the
+        # policy's, and must not be recorded as its protocol error.
+        frame = encode_frame(message, max_frame_bytes=DEFAULT_MAX_FRAME_BYTES)
+        started = time.monotonic()
+        deadline = started + self._bounded(timeout)
+        try:
+            # A policy that stops reading must not block the send either.
+            conn.settimeout(max(deadline - time.monotonic(), 0.001))
+            conn.sendall(frame)
+            reply = recv_message(conn, max_frame_bytes=self.max_frame_bytes, deadline=deadline)
+        except TimeoutError:
+            if time.monotonic() >= self.deadline:
+                raise PolicyFailure(
+                    "budget_exhausted", "the evaluation's time budget ran out"
+                ) from None
+            raise PolicyFailure(
+                "policy_timeout", f"no answer to '{message['type']}' within {timeout:g}s"
+            ) from None
+        except (PeerClosed, BrokenPipeError, ConnectionResetError):
+            raise PolicyFailure(
+                "policy_crashed", f"the policy closed the connection during '{message['type']}'"
+            ) from None
+        except ProtocolError as exc:
+            raise PolicyFailure("protocol_error", str(exc)) from None
+        if reply["type"] == "error":
+            raise PolicyRaised(str(reply.get("message", "the policy reported an error"))[:2000])
+        if reply["type"] != expect:
+            raise PolicyFailure(
+                "protocol_error",
+                f"expected '{expect}' after '{message['type']}', got '{reply['type'][:64]}'",
+            )
+        return reply
+
+    def hello(self, *, timeout: float) -> dict[str, Any]:
+        """Handshake: check the policy speaks our protocol version."""
+        try:
+            reply = self.call(
+                {"type": "hello", "protocol": PROTOCOL_VERSION}, expect="ready", timeout=timeout
+            )
+        except PolicyRaised as exc:
+            raise PolicyFailure(
+                "protocol_error", f"the policy refused the handshake: {exc}"
+            ) from None
+        if reply.get("protocol") != PROTOCOL_VERSION:
+            raise PolicyFailure(
+                "protocol_error",
+                f"the policy speaks protocol {reply.get('protocol')!r}, not {PROTOCOL_VERSION}",
+            )
+        return reply
+
+    def act(self, obs: Any, *, timeout: float) -> Any:
+        """Ask for an action; the caller validates its type, shape and values."""
+        return self.call({"type": "act", "obs": obs}, expect="action", timeout=timeout).get(
+            "action"
+        )
+
+    def close(self) -> None:
+        """Tell the policy to stop (best effort) and release the socket."""
+        if self._conn is not None:
+            try:
+                self._conn.settimeout(1.0)
+                send_message(self._conn, {"type": "close"})
+            except OSError:
+                pass
+            self._conn.close()
+            self._conn = None
+        self._listener.close()
+        self.path.unlink(missing_ok=True)
+        if self._owned_dir:
+            try:
+                self.socket_dir.rmdir()
+            except OSError:
+                pass
+
+    def _bounded(self, timeout: float) -> float:
+        remaining = self.deadline - time.monotonic()
+        if remaining <= 0:
+            raise PolicyFailure("budget_exhausted", "the evaluation's time budget ran out")
+        return min(timeout, remaining)
+
+    def _require_conn(self) -> socket.socket:
+        if self._conn is None:
+            raise RuntimeError("the policy is not connected")
+        return self._conn

@@ -1,0 +1,136 @@
+"""The versioned result document of an evaluation, and how it is aggregated from episodes."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from evaluator.stats import wilson_interval
+
+RESULT_SCHEMA_VERSION: Literal["1.0"] = "1.0"
+
+FailureKind = Literal[
+    "invalid_action",
+    "policy_error",
+    "policy_crashed",
+    "policy_timeout",
+    "protocol_error",
+    "budget_exhausted",
+    "not_run",
+]
+
+
+class _Doc(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class EpisodeResult(_Doc):
+    """One episode: the seed it ran with and what happened."""
+
+    index: int = Field(ge=0)
+    seed: int = Field(ge=0)
+    success_once: bool
+    success_at_end: bool
+    steps: int = Field(ge=0)
+    episode_return: float
+    wall_time_s: float = Field(ge=0)
+    invalid_actions: int = Field(default=0, ge=0)
+    clipped_actions: int = Field(default=0, ge=0)
+    failure: FailureKind | None = None
+    failure_reason: str | None = None
+
+
+class TaskResult(_Doc):
+    """One task under one condition: success rate with its Wilson 95% interval."""
+
+    env_id: str
+    episodes_planned: int = Field(ge=0)
+    successes: int = Field(ge=0)
+    success_rate: float = Field(ge=0, le=1)
+    ci_low: float = Field(ge=0, le=1)
+    ci_high: float = Field(ge=0, le=1)
+    success_at_end_rate: float = Field(ge=0, le=1)
+    mean_steps: float = Field(ge=0)
+    mean_return: float
+    episodes: list[EpisodeResult]
+
+
+class ConditionResult(_Doc):
+    """All tasks under one evaluation condition; `score` is the mean task success rate."""
+
+    name: str
+    params: dict[str, object]
+    score: float = Field(ge=0, le=1)
+    tasks: list[TaskResult]
+
+
+class Abort(_Doc):
+    """Why an evaluation stopped before running every episode."""
+
+    kind: FailureKind
+    reason: str
+    log_tail: str = ""
+
+
+class Video(_Doc):
+    env_id: str
+    condition: str
+    episode: int
+    path: str
+
+
+class Versions(_Doc):
+    manieval: str
+    mani_skill: str
+    sapien: str
+    torch: str
+    python: str
+
+
+class SuiteRef(_Doc):
+    name: str
+    version: int
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+
+
+class EvaluationResult(_Doc):
+    """What an evaluation produced: the document the server stores and the CLI prints."""
+
+    schema_version: Literal["1.0"] = RESULT_SCHEMA_VERSION
+    suite: SuiteRef
+    phase: str
+    policy: str
+    versions: Versions
+    started_at: datetime
+    finished_at: datetime
+    status: Literal["completed", "aborted"]
+    abort: Abort | None = None
+    score: float = Field(ge=0, le=1, description="Mean task success rate, first condition")
+    conditions: list[ConditionResult]
+    videos: list[Video] = []
+
+
+def aggregate_task(env_id: str, planned: int, episodes: list[EpisodeResult]) -> TaskResult:
+    """Summarise a task's episodes; episodes planned but not run count as failures."""
+    successes = sum(e.success_once for e in episodes)
+    low, high = wilson_interval(successes, planned)
+    ran = max(len(episodes), 1)
+    return TaskResult(
+        env_id=env_id,
+        episodes_planned=planned,
+        successes=successes,
+        success_rate=successes / planned if planned else 0.0,
+        ci_low=low,
+        ci_high=high,
+        success_at_end_rate=sum(e.success_at_end for e in episodes) / planned if planned else 0.0,
+        mean_steps=sum(e.steps for e in episodes) / ran,
+        mean_return=sum(e.episode_return for e in episodes) / ran,
+        episodes=episodes,
+    )
+
+
+def condition_score(tasks: list[TaskResult]) -> float:
+    """Mean of task success rates (the suite score)."""
+    return sum(t.success_rate for t in tasks) / len(tasks) if tasks else 0.0

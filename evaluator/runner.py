@@ -1,0 +1,266 @@
+"""Run an evaluation plan against a policy source, optionally sharded over worker processes.
+
+Episodes are split into contiguous chunks per task run, one chunk per worker; each worker owns
+its environments and its own policy process. Episode results depend only on (task, condition,
+seed, policy), so any number of workers produces the same records.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from evaluator.channel import PolicyChannel, RemoteChannel
+from evaluator.conditions import ConditionRuntime
+from evaluator.endpoint import PolicyEndpoint, PolicyFailure, PolicyRaised
+from evaluator.episode import run_episode
+from evaluator.plan import EvaluationPlan, TaskRun
+from evaluator.results import Abort, EpisodeResult, FailureKind, Video
+from evaluator.sim import (
+    action_bounds,
+    control_freq,
+    default_control_freq,
+    describe_space,
+    make_env,
+)
+from evaluator.sources import PolicySource
+from evaluator.video import write_video
+
+EpisodeCallback = Callable[[int, EpisodeResult], None]
+Unit = tuple[int, tuple[tuple[int, int], ...]]  # (run index, ((episode index, seed), ...))
+
+
+@dataclass(frozen=True)
+class Shard:
+    """The episodes one worker runs, grouped by task run."""
+
+    units: tuple[Unit, ...]
+
+
+@dataclass
+class ShardOutcome:
+    """What a worker ran: its episodes, why it stopped early (if it did), its videos."""
+
+    episodes: list[tuple[int, EpisodeResult]] = field(default_factory=list)
+    abort: tuple[int, int, Abort] | None = None  # (run index, episode index, why)
+    videos: list[Video] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How to run: the budget's deadline (time.monotonic) and where videos go."""
+
+    deadline: float
+    video_dir: Path | None = None
+
+
+def make_shards(plan: EvaluationPlan, workers: int) -> list[Shard]:
+    """Split every task run's episodes into `workers` contiguous chunks."""
+    if workers < 1:
+        raise ValueError("workers must be at least 1")
+    per_worker: list[list[Unit]] = [[] for _ in range(workers)]
+    for run_index, run in enumerate(plan.runs):
+        pairs = list(enumerate(run.seeds))
+        base, extra = divmod(len(pairs), workers)
+        start = 0
+        for worker in range(workers):
+            size = base + (1 if worker < extra else 0)
+            if size:
+                per_worker[worker].append((run_index, tuple(pairs[start : start + size])))
+            start += size
+    return [Shard(tuple(units)) for units in per_worker if units]
+
+
+def task_spec(run: TaskRun, env: Any, step_limit: int) -> dict[str, Any]:
+    """The `task` message's spec: what the policy may know about the task."""
+    low, high = action_bounds(env)
+    return {
+        "env_id": run.env_id,
+        "obs_mode": run.obs_mode,
+        "control_mode": run.control_mode,
+        "control_freq": control_freq(env),
+        "max_episode_steps": step_limit,
+        "action_space": {"low": low, "high": high},
+        "observation_space": describe_space(env.unwrapped.single_observation_space),
+    }
+
+
+def run_units(
+    plan: EvaluationPlan,
+    channel: PolicyChannel,
+    units: Sequence[Unit],
+    outcome: ShardOutcome,
+    *,
+    options: RunOptions,
+    on_episode: EpisodeCallback,
+    should_stop: Callable[[], bool] = lambda: False,
+) -> None:
+    """Run task runs' episodes through `channel`; PolicyFailure propagates after recording."""
+    for run_index, episodes in units:
+        if should_stop():
+            return
+        run = plan.runs[run_index]
+        runtime = ConditionRuntime(run.condition)
+        record = (
+            plan.record_video
+            and options.video_dir is not None
+            and _first_of_task(plan, run_index, episodes)
+        )
+        env = make_env(run, runtime, render=record)
+        try:
+            _run_task(
+                plan,
+                run_index,
+                run,
+                env,
+                runtime,
+                channel,
+                episodes,
+                outcome,
+                options=options,
+                record=record,
+                on_episode=on_episode,
+            )
+        finally:
+            env.close()
+
+
+def _first_of_task(
+    plan: EvaluationPlan, run_index: int, episodes: Sequence[tuple[int, int]]
+) -> bool:
+    first_condition = plan.runs[0].condition.name
+    return plan.runs[run_index].condition.name == first_condition and episodes[0][0] == 0
+
+
+def _run_task(
+    plan: EvaluationPlan,
+    run_index: int,
+    run: TaskRun,
+    env: Any,
+    runtime: ConditionRuntime,
+    channel: PolicyChannel,
+    episodes: Sequence[tuple[int, int]],
+    outcome: ShardOutcome,
+    *,
+    options: RunOptions,
+    record: bool,
+    on_episode: EpisodeCallback,
+) -> None:
+    step_limit = runtime.step_limit(run.max_episode_steps, default_control_freq(env))
+    bounds = action_bounds(env)
+    index, seed = episodes[0]  # where a PolicyFailure is charged
+    try:
+        setup_error = _start_task(channel, task_spec(run, env, step_limit))
+        for index, seed in episodes:
+            if setup_error is not None:
+                result = failed_episode(index, seed, "policy_error", setup_error)
+            else:
+                frames: list[Any] | None = [] if record and index == episodes[0][0] else None
+                result = run_episode(
+                    env,
+                    channel,
+                    runtime,
+                    index=index,
+                    seed=seed,
+                    step_limit=step_limit,
+                    bounds=bounds,
+                    frames=frames,
+                )
+                if frames and options.video_dir is not None:
+                    outcome.videos.append(
+                        write_video(
+                            frames, options.video_dir, run=run, episode=index, fps=control_freq(env)
+                        )
+                    )
+            outcome.episodes.append((run_index, result))
+            on_episode(run_index, result)
+    except PolicyFailure as failure:
+        result = failed_episode(index, seed, failure.kind, failure.reason)
+        outcome.episodes.append((run_index, result))
+        on_episode(run_index, result)
+        outcome.abort = (run_index, index, Abort(kind=failure.kind, reason=failure.reason))
+        raise
+
+
+def _start_task(channel: PolicyChannel, spec: dict[str, Any]) -> str | None:
+    """Send the task spec; the policy's own setup error fails the task's episodes, not the run."""
+    try:
+        channel.start_task(spec)
+    except PolicyRaised as exc:
+        return f"the policy raised in setup: {exc}"
+    return None
+
+
+def failed_episode(index: int, seed: int, kind: FailureKind, reason: str) -> EpisodeResult:
+    """The record of an episode that ended (or never started) because of the policy."""
+    return EpisodeResult(
+        index=index,
+        seed=seed,
+        success_once=False,
+        success_at_end=False,
+        steps=0,
+        episode_return=0.0,
+        wall_time_s=0.0,
+        failure=kind,
+        failure_reason=reason,
+    )
+
+
+def run_shard(
+    plan: EvaluationPlan,
+    source: PolicySource,
+    shard: Shard,
+    *,
+    options: RunOptions,
+    on_episode: EpisodeCallback,
+    should_stop: Callable[[], bool] = lambda: False,
+) -> ShardOutcome:
+    """Start a policy process, run the shard's episodes through it, always stop it."""
+    outcome = ShardOutcome()
+    limits = plan.limits
+    endpoint = PolicyEndpoint(max_frame_bytes=limits.max_action_frame_bytes)
+    endpoint.deadline = options.deadline
+    process = source.launch(endpoint=endpoint.address, socket_dir=endpoint.socket_dir)
+    try:
+        endpoint.accept(timeout=limits.connect_timeout_s, alive=process.alive)
+        endpoint.hello(timeout=limits.first_call_timeout_s)
+        channel = RemoteChannel(endpoint, limits)
+        run_units(
+            plan,
+            channel,
+            shard.units,
+            outcome,
+            options=options,
+            on_episode=on_episode,
+            should_stop=should_stop,
+        )
+    except PolicyFailure as failure:
+        if outcome.abort is None:  # it broke before the first episode: charge that episode
+            first_run, episodes = shard.units[0]
+            index, seed = episodes[0]
+            outcome.episodes.append(
+                (first_run, failed_episode(index, seed, failure.kind, failure.reason))
+            )
+            outcome.abort = (first_run, index, Abort(kind=failure.kind, reason=failure.reason))
+    finally:
+        code = process.exit_code()  # before stop(): our own SIGTERM is not the policy's exit
+        endpoint.close()
+        process.stop()
+    if outcome.abort is not None:
+        run_index, index, abort = outcome.abort
+        reason = abort.reason if code in (None, 0) else f"{abort.reason} (exit code {code})"
+        tail = process.log_tail()
+        outcome.abort = (
+            run_index,
+            index,
+            abort.model_copy(update={"reason": reason, "log_tail": tail}),
+        )
+    return outcome
+
+
+def deadline_after(budget_s: float) -> float:
+    """A time.monotonic() deadline `budget_s` from now."""
+    return time.monotonic() + budget_s

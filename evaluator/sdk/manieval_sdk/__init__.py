@@ -1,0 +1,9 @@
+"""ManiEval participant SDK: subclass `Policy`, then call `serve(policy)`.
+
+Depends on numpy and msgpack only, so it fits in any policy image.
+"""
+
+from manieval_sdk.policy import Observation, Policy, TaskSpec
+from manieval_sdk.serve import serve
+
+__all__ = ["Observation", "Policy", "TaskSpec", "serve"]

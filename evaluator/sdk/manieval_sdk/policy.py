@@ -1,0 +1,51 @@
+"""The class a participant subclasses: a policy maps observations to actions."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+Observation = Any
+"""A numpy array, or a dict (possibly nested) of numpy arrays, as the task's obs_mode gives."""
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """What the evaluator tells the policy about the task it is about to be evaluated on."""
+
+    env_id: str
+    obs_mode: str
+    control_mode: str
+    control_freq: int
+    max_episode_steps: int
+    action_low: np.ndarray
+    action_high: np.ndarray
+    observation_space: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        """Shape of the action array the policy must return."""
+        return tuple(self.action_low.shape)
+
+
+class Policy(ABC):
+    """Subclass and override `act` (and `setup`/`reset` when the policy keeps state).
+
+    The evaluator calls `setup` once per task, `reset` at the start of every episode and `act`
+    once per control step. Observations carry no batch dimension.
+    """
+
+    def setup(self, spec: TaskSpec) -> None:
+        """Called when a new task starts; `spec` describes its spaces and limits."""
+        self.spec = spec
+
+    def reset(self, obs: Observation, info: dict[str, Any]) -> None:  # noqa: B027 (optional hook)
+        """Called at the start of each episode with its first observation."""
+
+    @abstractmethod
+    def act(self, obs: Observation) -> np.ndarray:
+        """Return the action for this observation, shaped like `spec.action_low`."""

@@ -1,0 +1,202 @@
+"""ManiEval wire format: length-prefixed msgpack frames, numpy arrays as an explicit extension.
+
+A frame is a 4-byte big-endian unsigned length followed by that many bytes of msgpack. Arrays
+travel as msgpack extension type 1 whose payload is the msgpack array
+``[dtype, shape, data]``: a little-endian numpy dtype string from `ALLOWED_DTYPES`, a list of
+non-negative ints, and the raw C-order bytes. Nothing here runs code on load: decoding yields
+only dicts, lists, str, bytes, numbers, bools, None and numpy arrays. See docs/protocol.md.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import struct
+import threading
+import time
+from typing import Any
+
+import msgpack
+import numpy as np
+
+PROTOCOL_VERSION = 1
+EXT_NDARRAY = 1
+HEADER = struct.Struct(">I")
+MAX_NDIM = 8
+DEFAULT_MAX_FRAME_BYTES = 64 * 1024 * 1024
+
+ALLOWED_DTYPES = frozenset(
+    {"|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"}
+)
+
+
+class ProtocolError(Exception):
+    """The peer sent something that is not a valid ManiEval frame or message."""
+
+
+class FrameTooLarge(ProtocolError):
+    """A frame's declared length exceeds the receiver's limit."""
+
+
+class PeerClosed(ConnectionError):
+    """The peer closed the connection."""
+
+
+class CallTimeout(TimeoutError):
+    """The peer did not answer before the deadline."""
+
+
+_packers = threading.local()  # msgpack Packers are reusable but not thread-safe
+
+
+def _inner_packer() -> msgpack.Packer:
+    packer = getattr(_packers, "inner", None)
+    if packer is None:
+        packer = _packers.inner = msgpack.Packer(use_bin_type=True, autoreset=True)
+    return packer
+
+
+def _encode_array(array: np.ndarray) -> msgpack.ExtType:
+    dtype = array.dtype
+    if dtype.byteorder == ">":
+        dtype = dtype.newbyteorder("<")
+    code = dtype.str
+    if code not in ALLOWED_DTYPES:
+        raise TypeError(f"arrays of dtype {array.dtype} cannot be sent; allowed: numeric and bool")
+    if array.ndim > MAX_NDIM:
+        raise TypeError(f"arrays of more than {MAX_NDIM} dimensions cannot be sent")
+    data = np.ascontiguousarray(array, dtype=dtype).tobytes()
+    return msgpack.ExtType(EXT_NDARRAY, _inner_packer().pack([code, list(array.shape), data]))
+
+
+def _default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return _encode_array(value)
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot encode a {type(value).__name__}")
+
+
+def pack(message: Any) -> bytes:
+    """Encode a message (dicts, lists, scalars, numpy arrays) to msgpack bytes."""
+    packer = getattr(_packers, "outer", None)
+    if packer is None:
+        packer = _packers.outer = msgpack.Packer(default=_default, use_bin_type=True)
+    try:
+        payload: bytes = packer.pack(message)
+    finally:
+        packer.reset()  # a failed pack must not leave half a message in the buffer
+    return payload
+
+
+def _decode_array(code: int, payload: bytes) -> np.ndarray:
+    if code != EXT_NDARRAY:
+        raise ProtocolError(f"unknown extension type {code}")
+    try:
+        fields = msgpack.unpackb(payload, raw=False, use_list=True, strict_map_key=True)
+    except Exception as exc:
+        raise ProtocolError(f"malformed array payload: {exc}") from None
+    if not (isinstance(fields, list) and len(fields) == 3):
+        raise ProtocolError("an array must be [dtype, shape, data]")
+    dtype_str, shape, data = fields
+    if not isinstance(dtype_str, str) or dtype_str not in ALLOWED_DTYPES:
+        raise ProtocolError(f"array dtype {dtype_str!r} is not allowed")
+    if not isinstance(shape, list) or len(shape) > MAX_NDIM:
+        raise ProtocolError(f"array shape must be a list of at most {MAX_NDIM} ints")
+    if not all(type(n) is int and 0 <= n < 2**40 for n in shape):
+        raise ProtocolError("array shape entries must be non-negative ints")
+    if not isinstance(data, bytes):
+        raise ProtocolError("array data must be binary")
+    dtype = np.dtype(dtype_str)
+    if math.prod(shape) * dtype.itemsize != len(data):
+        raise ProtocolError(
+            f"array data is {len(data)} bytes, shape {shape} needs a different size"
+        )
+    array = np.frombuffer(data, dtype=dtype).reshape(shape).copy()
+    if dtype.kind == "b":
+        # Bytes other than 0/1 in a bool array are undefined behaviour in numpy: normalise them.
+        array = array.view(np.uint8).astype(np.bool_)
+    return array.astype(dtype.newbyteorder("="), copy=False)
+
+
+def _no_timestamps(container: Any) -> Any:
+    # msgpack decodes extension -1 as a Timestamp itself, without asking ext_hook.
+    values = container.values() if isinstance(container, dict) else container
+    if any(isinstance(value, msgpack.Timestamp) for value in values):
+        raise ProtocolError("timestamps are not part of the protocol")
+    return container
+
+
+def unpack(payload: bytes) -> Any:
+    """Decode msgpack bytes; raise ProtocolError on anything but well-formed data."""
+    try:
+        message = msgpack.unpackb(
+            payload,
+            raw=False,
+            use_list=True,
+            strict_map_key=True,
+            ext_hook=_decode_array,
+            list_hook=_no_timestamps,
+            object_hook=_no_timestamps,
+        )
+        return _no_timestamps([message])[0]
+    except ProtocolError:
+        raise
+    except Exception as exc:
+        raise ProtocolError(f"malformed message: {type(exc).__name__}: {exc}") from None
+
+
+def unpack_message(payload: bytes) -> dict[str, Any]:
+    """Decode a message: a map with a string `type`."""
+    message = unpack(payload)
+    if not isinstance(message, dict) or not isinstance(message.get("type"), str):
+        raise ProtocolError("a message must be a map with a string 'type'")
+    return message
+
+
+def encode_frame(message: Any, *, max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES) -> bytes:
+    """Header plus payload for one message; refuse payloads the receiver would refuse."""
+    payload = pack(message)
+    if len(payload) > max_frame_bytes:
+        raise FrameTooLarge(f"frame of {len(payload)} bytes exceeds the {max_frame_bytes} limit")
+    return HEADER.pack(len(payload)) + payload
+
+
+def send_message(
+    sock: socket.socket, message: Any, *, max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES
+) -> None:
+    """Send one message as a frame."""
+    sock.sendall(encode_frame(message, max_frame_bytes=max_frame_bytes))
+
+
+def _recv_exact(sock: socket.socket, size: int, deadline: float | None) -> bytes:
+    chunks = bytearray()
+    while len(chunks) < size:
+        if deadline is not None:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise CallTimeout("no complete answer before the deadline")
+            sock.settimeout(remaining)
+        try:
+            chunk = sock.recv(min(size - len(chunks), 1 << 20))
+        except TimeoutError:  # distinct classes before Python 3.10
+            raise CallTimeout("no complete answer before the deadline") from None
+        if not chunk:
+            raise PeerClosed("connection closed by the peer")
+        chunks += chunk
+    return bytes(chunks)
+
+
+def recv_message(
+    sock: socket.socket,
+    *,
+    max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES,
+    deadline: float | None = None,
+) -> dict[str, Any]:
+    """Receive one frame and decode it; `deadline` is a time.monotonic() value."""
+    (length,) = HEADER.unpack(_recv_exact(sock, HEADER.size, deadline))
+    if length > max_frame_bytes:
+        raise FrameTooLarge(f"frame of {length} bytes exceeds the {max_frame_bytes} limit")
+    if length == 0:
+        raise ProtocolError("empty frame")
+    return unpack_message(_recv_exact(sock, length, deadline))

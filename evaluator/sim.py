@@ -1,0 +1,70 @@
+"""ManiSkill environments as the evaluator uses them: built from a task run, observed as numpy."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from evaluator.conditions import ConditionRuntime, Observation
+from evaluator.plan import TaskRun
+
+
+def make_env(run: TaskRun, runtime: ConditionRuntime, *, render: bool = False) -> Any:
+    """Create the gymnasium environment for one task run (one environment, no batching)."""
+    import gymnasium as gym
+    import mani_skill.envs  # noqa: F401  (registers the ManiSkill environments)
+
+    cpu = run.sim_backend == "physx_cpu"
+    return gym.make(
+        run.env_id,
+        num_envs=1,
+        obs_mode=run.obs_mode,
+        control_mode=run.control_mode,
+        sim_backend=run.sim_backend,
+        render_backend="sapien_cpu" if cpu else "gpu",
+        render_mode="rgb_array" if render else None,
+        max_episode_steps=run.max_episode_steps * 100,  # the evaluator enforces the real limit
+        **runtime.env_kwargs(),
+    )
+
+
+def default_control_freq(env: Any) -> int:
+    """The task's own control frequency, before any condition changed it."""
+    return int(env.unwrapped._default_sim_config.control_freq)
+
+
+def control_freq(env: Any) -> int:
+    """The control frequency the environment runs at."""
+    return int(env.unwrapped.control_freq)
+
+
+def to_numpy(value: Any) -> Observation:
+    """Torch tensors (batch of one) to numpy arrays without the batch dimension, recursively."""
+    if isinstance(value, dict):
+        return {str(k): to_numpy(v) for k, v in value.items()}
+    if hasattr(value, "detach"):
+        value = value.detach().cpu().numpy()
+    array = np.asarray(value)
+    if array.ndim >= 1:
+        array = array[0]
+    return np.array(array, order="C")  # a copy: the simulator reuses its tensors
+
+
+def flag(value: Any) -> bool:
+    """A batch-of-one boolean tensor as a Python bool."""
+    return bool(np.asarray(to_numpy(value)).reshape(-1)[0])
+
+
+def describe_space(space: Any) -> dict[str, Any]:
+    """Shape and dtype of every leaf of a (single-environment) observation space."""
+    children = getattr(space, "spaces", None)
+    if isinstance(children, dict):
+        return {str(key): describe_space(value) for key, value in children.items()}
+    return {"shape": list(space.shape), "dtype": str(space.dtype)}
+
+
+def action_bounds(env: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Low and high bounds of the (single-environment) action space."""
+    space = env.unwrapped.single_action_space
+    return np.asarray(space.low, dtype=np.float32), np.asarray(space.high, dtype=np.float32)

@@ -1,0 +1,196 @@
+"""Benchmark suites as data: tasks, phases with their seeds, stress conditions and limits."""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+from pathlib import Path
+from typing import Annotated, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+SUITES_DIR = Path(__file__).resolve().parent.parent / "suites"
+SEED_LIMIT = 1 << 31  # seeds are non-negative int32, as ManiSkill and numpy expect
+
+
+class SuiteError(ValueError):
+    """A suite file is missing, unreadable or invalid; the message says where and why."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class TaskConfig(_Strict):
+    """One ManiSkill task as the suite runs it."""
+
+    env_id: str = Field(pattern=r"^[A-Za-z0-9_\-]+-v\d+$")
+    obs_mode: str = "state_dict"
+    control_mode: str = "pd_ee_delta_pose"
+    sim_backend: Literal["physx_cpu", "physx_cuda"] = "physx_cpu"
+    episodes: int = Field(default=50, ge=1, le=10_000)
+    max_episode_steps: int = Field(ge=1, le=100_000)
+
+
+class PublicSeeds(_Strict):
+    """Seeds anyone can reproduce: `start`, `start + 1`, ... for every task."""
+
+    kind: Literal["public"] = "public"
+    start: int = Field(default=0, ge=0, lt=SEED_LIMIT)
+
+
+class SecretSeeds(_Strict):
+    """Seeds derived from a server secret by HMAC-SHA256, unknowable to participants."""
+
+    kind: Literal["secret"] = "secret"
+
+
+class Phase(_Strict):
+    """A phase of the benchmark (e.g. `dev`, `test`) and where its seeds come from."""
+
+    description: str = ""
+    seeds: Annotated[PublicSeeds | SecretSeeds, Field(discriminator="kind")]
+
+
+class Nominal(_Strict):
+    kind: Literal["nominal"] = "nominal"
+
+
+class ObsNoise(_Strict):
+    """Gaussian noise on every floating-point observation entry."""
+
+    kind: Literal["obs_noise"] = "obs_noise"
+    sigma: float = Field(gt=0, le=10)
+
+
+class ActionDelay(_Strict):
+    """The policy acts on observations `steps` control steps old."""
+
+    kind: Literal["action_delay"] = "action_delay"
+    steps: int = Field(ge=1, le=100)
+
+
+class LowFreq(_Strict):
+    """The controller takes actions at `control_freq` Hz instead of the task's default."""
+
+    kind: Literal["low_freq"] = "low_freq"
+    control_freq: int = Field(default=5, ge=1, le=100)
+
+
+ConditionParams = Annotated[Nominal | ObsNoise | ActionDelay | LowFreq, Field(discriminator="kind")]
+
+
+class Condition(_Strict):
+    """A named evaluation condition: nominal or a sim-to-real stress."""
+
+    name: str = Field(pattern=r"^[a-z0-9_\-]+$")
+    params: ConditionParams
+
+
+class Limits(_Strict):
+    """What a policy may take: per-call timeouts, the whole evaluation's budget, frame size."""
+
+    connect_timeout_s: float = Field(default=120.0, gt=0)
+    first_call_timeout_s: float = Field(default=120.0, gt=0)
+    call_timeout_s: float = Field(default=10.0, gt=0)
+    budget_s: float = Field(default=7200.0, gt=0)
+    max_action_frame_bytes: int = Field(default=1 << 20, ge=1024)
+
+
+class Suite(_Strict):
+    """A benchmark: what to run, on which seeds, under which conditions."""
+
+    name: str = Field(pattern=r"^[a-z0-9][a-z0-9_\-]*$")
+    version: int = Field(ge=1)
+    description: str = ""
+    tasks: tuple[TaskConfig, ...] = Field(min_length=1)
+    phases: dict[str, Phase] = Field(min_length=1)
+    conditions: tuple[Condition, ...] = (Condition(name="nominal", params=Nominal()),)
+    limits: Limits = Limits()
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> Suite:
+        for label, names in (
+            ("task", [t.env_id for t in self.tasks]),
+            ("condition", [c.name for c in self.conditions]),
+        ):
+            duplicates = sorted({n for n in names if names.count(n) > 1})
+            if duplicates:
+                raise ValueError(f"duplicate {label} names: {', '.join(duplicates)}")
+        return self
+
+    def task(self, env_id: str) -> TaskConfig:
+        """The task named `env_id`, or SuiteError listing the suite's tasks."""
+        for task in self.tasks:
+            if task.env_id == env_id:
+                return task
+        known = ", ".join(t.env_id for t in self.tasks)
+        raise SuiteError(f"suite {self.name!r} has no task {env_id!r} (it has: {known})")
+
+    def condition(self, name: str) -> Condition:
+        """The condition called `name`, or SuiteError listing the suite's conditions."""
+        for condition in self.conditions:
+            if condition.name == name:
+                return condition
+        known = ", ".join(c.name for c in self.conditions)
+        raise SuiteError(f"suite {self.name!r} has no condition {name!r} (it has: {known})")
+
+    def phase(self, name: str) -> Phase:
+        """The phase called `name`, or SuiteError listing the suite's phases."""
+        if name not in self.phases:
+            known = ", ".join(self.phases)
+            raise SuiteError(f"suite {self.name!r} has no phase {name!r} (it has: {known})")
+        return self.phases[name]
+
+    def sha256(self) -> str:
+        """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
+        canonical = json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def load_suite(ref: str | Path) -> Suite:
+    """Load a suite by file path, or by name from the bundled `suites/` directory."""
+    path = Path(ref)
+    if not path.suffix and not path.exists():
+        path = SUITES_DIR / f"{ref}.yaml"
+    try:
+        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        bundled = ", ".join(sorted(p.stem for p in SUITES_DIR.glob("*.yaml")))
+        raise SuiteError(f"no suite file {path} (bundled suites: {bundled})") from None
+    except yaml.YAMLError as exc:
+        raise SuiteError(f"{path}: not valid YAML: {exc}") from None
+    try:
+        return Suite.model_validate(raw)
+    except ValidationError as exc:
+        raise SuiteError(f"{path}: invalid suite:\n{exc}") from None
+
+
+def phase_seeds(
+    suite: Suite, phase_name: str, env_id: str, count: int, *, secret: bytes | None = None
+) -> list[int]:
+    """The concrete seeds of `count` episodes of one task in one phase."""
+    seeds = suite.phase(phase_name).seeds
+    if isinstance(seeds, PublicSeeds):
+        if seeds.start + count > SEED_LIMIT:
+            raise SuiteError(
+                f"phase {phase_name!r}: {count} seeds from {seeds.start} overflow int32"
+            )
+        return [seeds.start + i for i in range(count)]
+    if not secret:
+        raise SuiteError(f"phase {phase_name!r} has secret seeds: a seed secret is required")
+    return [_secret_seed(secret, suite.name, phase_name, env_id, i) for i in range(count)]
+
+
+def _secret_seed(secret: bytes, suite: str, phase: str, env_id: str, index: int) -> int:
+    message = f"{suite}/{phase}/{env_id}/{index}".encode()
+    digest = hmac.new(secret, message, hashlib.sha256).digest()
+    return int.from_bytes(digest[:8], "big") % SEED_LIMIT
+
+
+def seed_commitment(seeds_by_task: dict[str, list[int]], *, salt: str) -> str:
+    """SHA-256 commitment to a phase's seeds, publishable before the seeds are revealed."""
+    body = json.dumps({"salt": salt, "seeds": seeds_by_task}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(body.encode()).hexdigest()

@@ -1,0 +1,1 @@
+"""The ManiEval API server (FastAPI): accounts, challenges, submissions, leaderboards."""

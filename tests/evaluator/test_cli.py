@@ -1,0 +1,137 @@
+"""The `manieval evaluate` command, run as a participant runs it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from evaluator.results import EvaluationResult
+from tests.evaluator.conftest import HERE, REACTIVE_POLICY, REPO
+
+MANIEVAL = REPO / ".venv" / "bin" / "manieval"
+TINY = str(HERE / "tiny_suite.yaml")
+
+
+def manieval(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [str(MANIEVAL), *args], capture_output=True, text=True, timeout=300, cwd=REPO
+    )
+
+
+@pytest.mark.sim
+def test_evaluate_prints_a_table_and_writes_a_valid_result_document(
+    make_policy: Callable[[str], Path], tmp_path: Path
+):
+    out = tmp_path / "r.json"
+    done = manieval(
+        "evaluate",
+        "--policy",
+        str(make_policy(REACTIVE_POLICY)),
+        "--suite",
+        TINY,
+        "--tasks",
+        "PickCube-v1",
+        "--condition",
+        "nominal",
+        "--episodes",
+        "2",
+        "--json",
+        str(out),
+    )
+    assert done.returncode == 0, done.stderr
+    assert "PickCube-v1" in done.stdout
+    assert "score" in done.stdout
+    result = EvaluationResult.model_validate(json.loads(out.read_text()))
+    assert [t.env_id for t in result.conditions[0].tasks] == ["PickCube-v1"]
+    assert len(result.conditions[0].tasks[0].episodes) == 2
+
+
+@pytest.mark.sim
+def test_evaluate_records_the_first_episode_of_each_task_as_video(
+    make_policy: Callable[[str], Path], tmp_path: Path
+):
+    import imageio.v2 as imageio
+
+    out = tmp_path / "r.json"
+    done = manieval(
+        "evaluate",
+        "--policy",
+        str(make_policy(REACTIVE_POLICY)),
+        "--suite",
+        TINY,
+        "--tasks",
+        "PushCube-v1",
+        "--condition",
+        "nominal",
+        "--episodes",
+        "2",
+        "--video",
+        str(tmp_path / "videos"),
+        "--json",
+        str(out),
+    )
+    assert done.returncode == 0, done.stderr
+    result = EvaluationResult.model_validate_json(out.read_text())
+    [video] = result.videos
+    assert (video.env_id, video.condition, video.episode) == ("PushCube-v1", "nominal", 0)
+    frames = imageio.mimread(video.path)
+    assert len(frames) == result.conditions[0].tasks[0].episodes[0].steps
+    assert frames[0].ndim == 3
+
+
+@pytest.mark.sim
+def test_evaluate_exits_1_with_the_reason_when_the_policy_crashes(
+    make_policy: Callable[[str], Path],
+):
+    policy = make_policy("import sys\nprint('missing weights.pt', file=sys.stderr)\nsys.exit(4)\n")
+    done = manieval(
+        "evaluate",
+        "--policy",
+        str(policy),
+        "--suite",
+        TINY,
+        "--tasks",
+        "PickCube-v1",
+        "--condition",
+        "nominal",
+        "--episodes",
+        "1",
+    )
+    assert done.returncode == 1
+    assert "policy_crashed" in done.stderr
+    assert "exit code 4" in done.stderr
+    assert "missing weights.pt" in done.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--tasks", "NoSuchTask-v1"], "no task 'NoSuchTask-v1'"),
+        (["--condition", "storm"], "no condition 'storm'"),
+        (["--phase", "final"], "no phase 'final'"),
+        (["--suite", "no-such-suite"], "no suite file"),
+    ],
+)
+def test_evaluate_explains_bad_arguments_and_exits_2(
+    make_policy: Callable[[str], Path], args: list[str], message: str
+):
+    policy = make_policy(REACTIVE_POLICY)
+    done = manieval("evaluate", "--policy", str(policy), "--suite", TINY, *args)
+    assert done.returncode == 2
+    assert message in done.stderr
+
+
+def test_evaluate_refuses_a_directory_without_policy_py(tmp_path: Path):
+    done = manieval("evaluate", "--policy", str(tmp_path), "--suite", TINY)
+    assert done.returncode == 2
+    assert "has no policy.py" in done.stderr
+
+
+def test_test_phase_without_the_seed_secret_is_refused(make_policy: Callable[[str], Path]):
+    done = manieval("evaluate", "--policy", str(make_policy(REACTIVE_POLICY)), "--phase", "test")
+    assert done.returncode == 2
+    assert "secret" in done.stderr

@@ -1,0 +1,129 @@
+from pathlib import Path
+
+import pytest
+
+from evaluator.plan import build_plan
+from evaluator.suite import SuiteError, load_suite, phase_seeds, seed_commitment
+
+CORE_TASKS = {
+    "PickCube-v1",
+    "PushCube-v1",
+    "PullCube-v1",
+    "StackCube-v1",
+    "PegInsertionSide-v1",
+    "LiftPegUpright-v1",
+}
+
+
+def write_suite(tmp_path: Path, body: str) -> Path:
+    path = tmp_path / "suite.yaml"
+    path.write_text(body)
+    return path
+
+
+def test_bundled_core_suite_loads_by_name_with_its_tasks_and_conditions():
+    suite = load_suite("maniskill-core")
+    assert {t.env_id for t in suite.tasks} == CORE_TASKS
+    assert [c.name for c in suite.conditions] == [
+        "nominal",
+        "obs_noise",
+        "action_delay",
+        "low_freq",
+    ]
+    assert set(suite.phases) == {"dev", "test"}
+
+
+def test_dev_seeds_are_public_and_consecutive():
+    suite = load_suite("maniskill-core")
+    assert phase_seeds(suite, "dev", "PickCube-v1", 4) == [0, 1, 2, 3]
+
+
+def test_test_seeds_need_the_secret():
+    suite = load_suite("maniskill-core")
+    with pytest.raises(SuiteError, match="secret"):
+        phase_seeds(suite, "test", "PickCube-v1", 3)
+
+
+def test_test_seeds_are_stable_per_secret_and_differ_between_secrets_and_tasks():
+    suite = load_suite("maniskill-core")
+    a = phase_seeds(suite, "test", "PickCube-v1", 5, secret=b"s1")
+    assert a == phase_seeds(suite, "test", "PickCube-v1", 5, secret=b"s1")
+    assert a != phase_seeds(suite, "test", "PickCube-v1", 5, secret=b"s2")
+    assert a != phase_seeds(suite, "test", "PushCube-v1", 5, secret=b"s1")
+    assert all(0 <= s < 2**31 for s in a)
+
+
+def test_seed_commitment_changes_with_any_seed():
+    base = seed_commitment({"PickCube-v1": [1, 2]}, salt="x")
+    assert len(base) == 64
+    assert base == seed_commitment({"PickCube-v1": [1, 2]}, salt="x")
+    assert base != seed_commitment({"PickCube-v1": [1, 3]}, salt="x")
+
+
+def test_suite_hash_is_stable_and_changes_with_content(tmp_path: Path):
+    suite = load_suite("maniskill-core")
+    assert suite.sha256() == load_suite("maniskill-core").sha256()
+    text = (Path(__file__).parents[2] / "suites" / "maniskill-core.yaml").read_text()
+    changed = load_suite(write_suite(tmp_path, text.replace("sigma: 0.005", "sigma: 0.01")))
+    assert changed.sha256() != suite.sha256()
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ("name: x\nversion: 1\ntasks: []\nphases: {dev: {seeds: {kind: public}}}", "tasks"),
+        ("name: x\nversion: 1\ntasks: [{env_id: PickCube-v1}]\nphases: {}", "max_episode_steps"),
+        (
+            "name: x\nversion: 1\nbogus: 1\ntasks: [{env_id: A-v1, max_episode_steps: 5}]\n"
+            "phases: {dev: {seeds: {kind: public}}}",
+            "bogus",
+        ),
+        (
+            "name: x\nversion: 1\ntasks: [{env_id: A-v1, max_episode_steps: 5}, "
+            "{env_id: A-v1, max_episode_steps: 5}]\nphases: {dev: {seeds: {kind: public}}}",
+            "duplicate task",
+        ),
+        ("name: x\nversion: [", "not valid YAML"),
+    ],
+)
+def test_invalid_suites_are_refused_with_a_reason(tmp_path: Path, body: str, message: str):
+    with pytest.raises(SuiteError, match=message):
+        load_suite(write_suite(tmp_path, body))
+
+
+def test_unknown_suite_name_lists_the_bundled_ones():
+    with pytest.raises(SuiteError, match="maniskill-core"):
+        load_suite("no-such-suite")
+
+
+def test_plan_narrows_tasks_conditions_and_episodes():
+    plan = build_plan(
+        load_suite("maniskill-core"),
+        "dev",
+        tasks=["PushCube-v1"],
+        conditions=["nominal", "low_freq"],
+        episodes=3,
+    )
+    assert [(r.condition.name, r.env_id, r.seeds) for r in plan.runs] == [
+        ("nominal", "PushCube-v1", (0, 1, 2)),
+        ("low_freq", "PushCube-v1", (0, 1, 2)),
+    ]
+    assert plan.episode_count() == 6
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"tasks": ["NoSuchTask-v1"]}, "no task 'NoSuchTask-v1'"),
+        ({"conditions": ["storm"]}, "no condition 'storm'"),
+        ({"episodes": 0}, "at least 1"),
+    ],
+)
+def test_plan_refuses_unknown_names(kwargs: dict[str, object], message: str):
+    with pytest.raises(SuiteError, match=message):
+        build_plan(load_suite("maniskill-core"), "dev", **kwargs)  # type: ignore[arg-type]
+
+
+def test_plan_refuses_unknown_phase():
+    with pytest.raises(SuiteError, match="no phase 'final'"):
+        build_plan(load_suite("maniskill-core"), "final")

@@ -1,0 +1,1 @@
+"""Celery tasks and the executors that run evaluations (in-process, Docker API, Kubernetes)."""
