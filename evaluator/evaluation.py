@@ -44,16 +44,29 @@ def evaluate(
     workers: int = 1,
     video_dir: Path | None = None,
     on_episode: EpisodeCallback | None = None,
+    should_stop: Callable[[], bool] = lambda: False,
 ) -> EvaluationResult:
-    """Run every episode of `plan` against the policy from `source` and score it."""
+    """Run every episode of `plan` against the policy from `source` and score it.
+
+    `should_stop` is polled between episodes (a cancel): episodes not run are recorded so.
+    """
     started = datetime.now(UTC)
     options = RunOptions(deadline=deadline_after(plan.limits.budget_s), video_dir=video_dir)
     callback = on_episode or (lambda _run, _episode: None)
     shards = make_shards(plan, workers)
     if len(shards) == 1:
-        outcomes = [run_shard(plan, source, shards[0], options=options, on_episode=callback)]
+        outcomes = [
+            run_shard(
+                plan,
+                source,
+                shards[0],
+                options=options,
+                on_episode=callback,
+                should_stop=should_stop,
+            )
+        ]
     else:
-        outcomes = _run_parallel(plan, source, shards, options, callback)
+        outcomes = _run_parallel(plan, source, shards, options, callback, should_stop)
     return build_result(plan, source.describe(), outcomes, started=started)
 
 
@@ -63,6 +76,7 @@ def _run_parallel(
     shards: list[Shard],
     options: RunOptions,
     callback: EpisodeCallback,
+    should_stop: Callable[[], bool],
 ) -> list[ShardOutcome]:
     # spawn, not fork: torch and SAPIEN hold threads and GPU/Vulkan state that fork would copy.
     context = multiprocessing.get_context("spawn")
@@ -75,15 +89,21 @@ def _run_parallel(
         initargs=(events, stop),
     ) as pool:
         futures = [pool.submit(_shard_in_worker, plan, source, shard, options) for shard in shards]
-        _pump_events(futures, events, callback, stop)
+        _pump_events(futures, events, callback, stop, should_stop)
         outcomes = [future.result() for future in futures]
     return outcomes
 
 
 def _pump_events(
-    futures: list[Future[ShardOutcome]], events: Any, callback: EpisodeCallback, stop: Any
+    futures: list[Future[ShardOutcome]],
+    events: Any,
+    callback: EpisodeCallback,
+    stop: Any,
+    should_stop: Callable[[], bool],
 ) -> None:
     while True:
+        if should_stop():
+            stop.set()
         done = all(f.done() for f in futures)
         try:
             kind, run_index, payload = events.get(timeout=0.1)

@@ -123,6 +123,7 @@ def run_units(
                 options=options,
                 record=record,
                 on_episode=on_episode,
+                should_stop=should_stop,
             )
         finally:
             env.close()
@@ -148,6 +149,7 @@ def _run_task(
     options: RunOptions,
     record: bool,
     on_episode: EpisodeCallback,
+    should_stop: Callable[[], bool],
 ) -> None:
     step_limit = runtime.step_limit(run.max_episode_steps, default_control_freq(env))
     bounds = action_bounds(env)
@@ -155,6 +157,8 @@ def _run_task(
     try:
         setup_error = _start_task(channel, task_spec(run, env, step_limit))
         for index, seed in episodes:
+            if should_stop():  # cancelled, or another shard aborted: the rest is not run
+                return
             if setup_error is not None:
                 result = failed_episode(index, seed, "policy_error", setup_error)
             else:
