@@ -17,6 +17,9 @@ if [ -z "$mesa" ] || dpkg --compare-versions "$mesa" lt 24.3; then
   need_backports=1
 fi
 python3 -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
+# The tests pin image tags to digests against a real OCI registry (CNCF distribution).
+command -v docker-registry >/dev/null || missing+=(docker-registry)
+command -v openssl >/dev/null || missing+=(openssl)  # signs the test registry's tokens
 
 [ ${#missing[@]} -eq 0 ] && exit 0
 
