@@ -26,10 +26,7 @@ test: lint
 	$(BIN)/pytest
 
 demo: install
-	$(BIN)/manieval evaluate --policy examples/policies/scripted --suite maniskill-core \
-		--phase dev --episodes 10
-	$(BIN)/manieval evaluate --policy examples/policies/random --suite maniskill-core \
-		--phase dev --episodes 10
+	$(BIN)/manieval demo
 
 bench: install
 	$(BIN)/python bench/protocol_overhead.py

@@ -3,6 +3,7 @@
 import typer
 
 from evaluator.cli import evaluate
+from server.cli import admin_app, challenge_app, db_app, demo, serve
 
 app = typer.Typer(
     name="manieval",
@@ -18,3 +19,8 @@ def main() -> None:
 
 
 app.command("evaluate")(evaluate)
+app.command("serve")(serve)
+app.command("demo")(demo)
+app.add_typer(db_app, name="db")
+app.add_typer(admin_app, name="admin")
+app.add_typer(challenge_app, name="challenge")

@@ -1,0 +1,236 @@
+"""The FastAPI application: ``create_app(settings)`` wires the API, the queue and the worker."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any, Protocol
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from sqlalchemy import select, text
+from sqlalchemy.orm import Session, sessionmaker
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from server import api, internal
+from server.db import make_engine, session_factory
+from server.deps import Services
+from server.dispatch import Dispatcher, InlineQueue, WorkQueue
+from server.errors import AppError, ErrorBody, ErrorDetail, Invalid, Unavailable
+from server.images import (
+    ImageError,
+    ImageReference,
+    RegistryClient,
+    RegistryUnavailable,
+    ResolvedImage,
+    parse_reference,
+)
+from server.models import State, Submission
+from server.ratelimit import MemoryRateLimiter, RateLimiter
+from server.settings import Settings
+from server.submissions import LOCAL_PREFIX, Resolved, Resolver, transition
+
+log = logging.getLogger(__name__)
+SWEEP_INTERVAL_S = 5.0
+
+
+class Registry(Protocol):
+    def resolve(self, ref: ImageReference, *, max_bytes: int) -> ResolvedImage: ...
+
+
+def image_resolver(settings: Settings, registry: Registry | None = None) -> Resolver:
+    """Validate a submitted reference and pin it through the registry; every problem is a 422
+    on the `image` field."""
+    client = registry or RegistryClient(
+        allowed_registries=settings.allowed_registries,
+        insecure_registries=settings.insecure_registries,
+        timeout=settings.registry_timeout,
+    )
+
+    def resolve(image: str) -> Resolved:
+        if image.startswith(LOCAL_PREFIX):
+            return _resolve_local(image, settings)
+        try:
+            resolved = client.resolve(parse_reference(image), max_bytes=settings.max_image_bytes)
+        except RegistryUnavailable as exc:  # ours or theirs, not the participant's: retry later
+            raise Unavailable(str(exc), fields={"image": str(exc)}) from None
+        except ImageError as exc:
+            raise Invalid(str(exc), fields={"image": str(exc)}) from None
+        return Resolved(pinned=resolved.pinned, size_bytes=resolved.size_bytes)
+
+    return resolve
+
+
+def _resolve_local(image: str, settings: Settings) -> Resolved:
+    from worker.run import local_policies
+
+    if not settings.allow_local_policies:
+        raise Invalid(
+            "this server does not accept local policies",
+            fields={"image": "submit a container image reference"},
+        )
+    name = image.removeprefix(LOCAL_PREFIX)
+    known = local_policies()
+    if name not in known:
+        raise Invalid(
+            f"no bundled policy {name!r}", fields={"image": f"one of: {', '.join(sorted(known))}"}
+        )
+    return Resolved(pinned=image, size_bytes=None)
+
+
+def inline_queue(sessions: sessionmaker[Session], settings: Settings) -> InlineQueue:
+    from worker.run import run_submission
+
+    return InlineQueue(
+        lambda sid, attempt: run_submission(sessions, settings, sid, attempt),
+        threads=settings.inline_workers,
+    )
+
+
+def recover_inline(sessions: sessionmaker[Session], work: WorkQueue) -> None:
+    """After a restart of the embedded server: runs it had in flight died with it (ended
+    `error`, which burns no quota, so the owner may resubmit); queued ones are sent again."""
+    with sessions.begin() as db:
+        for s in db.scalars(
+            select(Submission).where(Submission.state.in_([State.LAUNCHING, State.RUNNING]))
+        ):
+            transition(
+                db,
+                s.id,
+                s.attempt,
+                State.ERROR,
+                "the server stopped during the evaluation; submit again or ask for a re-run",
+            )
+        pending = db.execute(
+            select(Submission.id, Submission.attempt)
+            .where(Submission.state == State.QUEUED)
+            .order_by(Submission.id)
+        ).all()
+    for sid, attempt in pending:
+        work.enqueue(sid, attempt)
+
+
+def create_app(
+    settings: Settings,
+    *,
+    sessions: sessionmaker[Session] | None = None,
+    work: WorkQueue | None = None,
+    resolve: Resolver | None = None,
+    limiter: RateLimiter | None = None,
+    background: bool = True,
+) -> FastAPI:
+    """The app. Tests pass their own session factory, queue, resolver or limiter, and
+    `background=False` to run without the outbox sweeper and the embedded worker thread."""
+    if sessions is None:
+        sessions = session_factory(make_engine(settings.resolved_database_url))
+    inline: InlineQueue | None = None
+    if work is None:
+        inline = inline_queue(sessions, settings)
+        work = inline
+    if limiter is None:
+        limiter = _limiter(settings)
+    dispatcher = Dispatcher(sessions, work)
+    svc = Services(
+        settings=settings,
+        sessions=sessions,
+        limiter=limiter,
+        resolve=resolve or image_resolver(settings),
+        dispatcher=dispatcher,
+    )
+    stop = threading.Event()
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+        sweeper = threading.Thread(
+            target=_sweep, args=(dispatcher, stop), name="manieval-outbox", daemon=True
+        )
+        if inline is not None and background:
+            recover_inline(sessions, inline)
+            inline.start()
+        if background:
+            sweeper.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            if inline is not None:
+                inline.stop(timeout=5)
+
+    app = FastAPI(
+        title="ManiEval",
+        version="1.0",
+        summary="Evaluation service for simulated robot-manipulation policies",
+        lifespan=lifespan,
+    )
+    app.state.services = svc
+    app.state.inline_queue = inline
+    app.include_router(api.router)
+    app.include_router(internal.router)
+    _install_error_handlers(app)
+
+    @app.get("/healthz", include_in_schema=False)
+    def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    @app.get("/readyz", include_in_schema=False)
+    def readyz() -> JSONResponse:
+        try:
+            with sessions() as db:
+                db.execute(text("SELECT 1"))
+        except Exception as exc:
+            return JSONResponse({"status": "unavailable", "database": str(exc)}, 503)
+        return JSONResponse({"status": "ok"})
+
+    return app
+
+
+def _limiter(settings: Settings) -> RateLimiter:
+    if settings.rate_limit_backend == "redis":
+        import redis
+
+        from server.ratelimit import RedisRateLimiter
+
+        return RedisRateLimiter(redis.Redis.from_url(settings.redis_url))
+    return MemoryRateLimiter()
+
+
+def _sweep(dispatcher: Dispatcher, stop: threading.Event) -> None:
+    while not stop.wait(SWEEP_INTERVAL_S):
+        dispatcher.dispatch()
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    def respond(status: int, detail: ErrorDetail, headers: dict[str, str] | None = None) -> Any:
+        body = ErrorBody(error=detail).model_dump(mode="json", exclude_none=True)
+        return JSONResponse(body, status_code=status, headers=headers)
+
+    @app.exception_handler(AppError)
+    async def app_error(_request: Request, exc: AppError) -> JSONResponse:
+        return JSONResponse(exc.body(), status_code=exc.status, headers=exc.headers())
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        fields: dict[str, str] = {}
+        for error in exc.errors():
+            loc = [str(part) for part in error.get("loc", ()) if part not in ("body", "query")]
+            fields[".".join(loc) or "request"] = str(error.get("msg", "invalid"))
+        detail = ErrorDetail(code="invalid", message="the request is not valid", fields=fields)
+        result: JSONResponse = respond(422, detail)
+        return result
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
+        detail = ErrorDetail(code=code, message=str(exc.detail))
+        result: JSONResponse = respond(exc.status_code, detail, getattr(exc, "headers", None))
+        return result
+
+    @app.exception_handler(Exception)
+    async def crash(_request: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error", exc_info=exc)
+        detail = ErrorDetail(code="internal", message="internal error; it has been logged")
+        result: JSONResponse = respond(500, detail)
+        return result

@@ -1,0 +1,133 @@
+"""Challenges: created or updated from a suite file; the test phase's seeds stay on the server."""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import yaml
+from sqlalchemy import select
+from sqlalchemy.orm import Session as DB
+
+from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
+from server.errors import Invalid, NotFound
+from server.models import Challenge, Phase
+
+
+@dataclass(frozen=True)
+class ChallengeOptions:
+    title: str | None = None
+    description: str | None = None
+    quota_per_day: int = 5
+    quota_concurrent: int = 1
+    opens: dict[str, datetime] = field(default_factory=dict)
+    closes: dict[str, datetime] = field(default_factory=dict)
+    episodes: int | None = None
+    """Override every task's episode count (a quick try-out; the stored suite says so)."""
+
+
+def load_challenge(
+    db: DB, suite_ref: str | Path, options: ChallengeOptions, *, seed_secret: str
+) -> Challenge:
+    """Create the challenge named after the suite, or update it in place (same slug)."""
+    suite = load_suite(suite_ref)
+    for name in [*options.opens, *options.closes]:
+        suite.phase(name)  # SuiteError names the phases that exist
+    if options.quota_per_day < 1 or options.quota_concurrent < 1:
+        raise Invalid("quotas must be at least 1")
+    text = Path(suite_ref).read_text() if Path(suite_ref).exists() else None
+    suite_yaml = text if text is not None else _bundled_text(suite_ref)
+    if options.episodes is not None:
+        if options.episodes < 1:
+            raise Invalid("episodes must be at least 1")
+        tasks = tuple(t.model_copy(update={"episodes": options.episodes}) for t in suite.tasks)
+        suite = suite.model_copy(update={"tasks": tasks})
+        header = f"# {suite.name} with {options.episodes} episodes per task (a try-out)\n"
+        suite_yaml = header + yaml.safe_dump(suite.model_dump(mode="json"), sort_keys=False)
+
+    challenge = db.scalar(select(Challenge).where(Challenge.slug == suite.name))
+    if challenge is None:
+        challenge = Challenge(slug=suite.name)
+        db.add(challenge)
+    challenge.title = options.title or _title(suite)
+    challenge.description = options.description or suite.description
+    challenge.suite_yaml = suite_yaml
+    challenge.suite_hash = suite.sha256()
+    challenge.quota_per_day = options.quota_per_day
+    challenge.quota_concurrent = options.quota_concurrent
+
+    existing = {phase.name: phase for phase in challenge.phases}
+    for name, spec in suite.phases.items():
+        phase = existing.pop(name, None)
+        if phase is None:
+            phase = Phase(name=name)
+            challenge.phases.append(phase)
+        phase.public_seeds = isinstance(spec.seeds, PublicSeeds)
+        phase.seed_commitment = commitment(suite, name, seed_secret)
+        phase.opens_at = options.opens.get(name, phase.opens_at)
+        phase.closes_at = options.closes.get(name, phase.closes_at)
+        if phase.opens_at and phase.closes_at and phase.closes_at <= phase.opens_at:
+            raise Invalid(f"phase {name!r} closes before it opens")
+    for gone in existing.values():  # phases dropped from the suite
+        challenge.phases.remove(gone)
+    db.flush()
+    return challenge
+
+
+def _bundled_text(ref: str | Path) -> str:
+    from evaluator.suite import SUITES_DIR
+
+    return (SUITES_DIR / f"{ref}.yaml").read_text()
+
+
+def _title(suite: Suite) -> str:
+    return suite.name.replace("-", " ").replace("_", " ").title()
+
+
+def suite_of(challenge: Challenge) -> Suite:
+    return Suite.model_validate(yaml.safe_load(challenge.suite_yaml))
+
+
+def seed_secret_for(seed_secret: str, challenge_slug: str) -> bytes:
+    """The key test seeds derive from. The derivation already mixes in the suite's name, so
+    challenges never share hidden seeds, and an organizer with the same secret reproduces
+    them offline: ``MANIEVAL_SEED_SECRET=... manieval evaluate --phase test``."""
+    del challenge_slug
+    return seed_secret.encode()
+
+
+def phase_seed_map(suite: Suite, phase: str, seed_secret: str) -> dict[str, list[int]]:
+    secret = seed_secret_for(seed_secret, suite.name)
+    return {
+        task.env_id: phase_seeds(suite, phase, task.env_id, task.episodes, secret=secret)
+        for task in suite.tasks
+    }
+
+
+def commitment(suite: Suite, phase: str, seed_secret: str) -> str:
+    """SHA-256 over the phase's seeds and a secret salt, published before seeds are revealed."""
+    salt = hmac.new(
+        seed_secret.encode(), f"salt/{suite.name}/{phase}".encode(), hashlib.sha256
+    ).hexdigest()
+    return seed_commitment(phase_seed_map(suite, phase, seed_secret), salt=salt)
+
+
+def get_challenge(db: DB, slug: str) -> Challenge:
+    challenge = db.scalar(select(Challenge).where(Challenge.slug == slug))
+    if challenge is None:
+        raise NotFound(f"no challenge {slug!r}")
+    return challenge
+
+
+def get_phase(challenge: Challenge, name: str) -> Phase:
+    for phase in challenge.phases:
+        if phase.name == name:
+            return phase
+    names = ", ".join(p.name for p in challenge.phases)
+    raise Invalid(
+        f"challenge {challenge.slug!r} has no phase {name!r} (it has: {names})",
+        fields={"phase": f"one of: {names}"},
+    )

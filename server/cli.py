@@ -1,0 +1,187 @@
+"""Operator commands: `manieval serve`, `manieval db upgrade`, `manieval admin create`,
+`manieval challenge load`."""
+
+from __future__ import annotations
+
+import getpass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from pydantic import ValidationError
+from rich.console import Console
+
+from evaluator.suite import SuiteError
+from server.errors import AppError
+from server.settings import Settings
+
+console = Console(stderr=True, soft_wrap=True)
+
+db_app = typer.Typer(help="Database schema.", no_args_is_help=True)
+admin_app = typer.Typer(help="Administrators.", no_args_is_help=True)
+challenge_app = typer.Typer(help="Challenges.", no_args_is_help=True)
+
+
+def settings() -> Settings:
+    try:
+        return Settings()
+    except ValidationError as exc:
+        for error in exc.errors():
+            console.print(f"[red]configuration error:[/] {error['msg']}")
+        raise typer.Exit(2) from None
+
+
+def _sessions(s: Settings):  # type: ignore[no-untyped-def]
+    from server.db import make_engine, session_factory, upgrade
+
+    upgrade(s.resolved_database_url)
+    return session_factory(make_engine(s.resolved_database_url))
+
+
+def serve(
+    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=1, max=65535)] = 8000,
+) -> None:
+    """Run the API with its embedded worker (migrating the database first)."""
+    import uvicorn
+
+    from server.app import create_app
+
+    s = settings()
+    sessions = _sessions(s)
+    console.print(f"ManiEval on http://{host}:{port}  (data: {s.data_dir}, docs: /docs)")
+    uvicorn.run(create_app(s, sessions=sessions), host=host, port=port, log_level="info")
+
+
+@db_app.command("upgrade")
+def db_upgrade(revision: str = "head") -> None:
+    """Apply migrations up to REVISION (default: the newest)."""
+    from server.db import upgrade
+
+    s = settings()
+    upgrade(s.resolved_database_url, revision)
+    console.print(f"database at {revision}")
+
+
+@admin_app.command("create")
+def admin_create(
+    username: str,
+    email: str,
+    password_stdin: Annotated[
+        bool, typer.Option("--password-stdin", help="Read the password from standard input.")
+    ] = False,
+) -> None:
+    """Create an administrator account (or make an existing user an administrator)."""
+    from sqlalchemy import select
+
+    from server import accounts
+    from server.models import User
+
+    s = settings()
+    sessions = _sessions(s)
+    with sessions.begin() as db:
+        existing = db.scalar(select(User).where(User.username == username))
+        if existing is not None:
+            existing.is_admin = True
+            console.print(f"{username} is now an administrator")
+            return
+    password = (
+        typer.get_text_stream("stdin").readline().rstrip("\n")
+        if password_stdin
+        else getpass.getpass(f"password for {username}: ")
+    )
+    try:
+        with sessions.begin() as db:
+            accounts.register(db, username=username, email=email, password=password, admin=True)
+    except AppError as exc:
+        console.print(f"[red]error:[/] {exc.message}")
+        for field, problem in exc.fields.items():
+            console.print(f"  {field}: {problem}")
+        raise typer.Exit(1) from None
+    console.print(f"administrator {username} created")
+
+
+def _dates(values: list[str] | None, option: str) -> dict[str, datetime]:
+    out: dict[str, datetime] = {}
+    for value in values or []:
+        phase, sep, when = value.partition("=")
+        try:
+            if not sep:
+                raise ValueError("missing '='")
+            parsed = datetime.fromisoformat(when)
+        except ValueError:
+            console.print(f"[red]error:[/] {option} takes PHASE=ISO-DATE, e.g. test=2027-01-31")
+            raise typer.Exit(2) from None
+        out[phase] = parsed if parsed.tzinfo else parsed.replace(tzinfo=UTC)
+    return out
+
+
+@challenge_app.command("load")
+def challenge_load(
+    suite: Annotated[str, typer.Argument(help="Suite file, or the name of a bundled suite.")],
+    title: Annotated[str | None, typer.Option()] = None,
+    quota_per_day: Annotated[int, typer.Option(min=1)] = 5,
+    quota_concurrent: Annotated[int, typer.Option(min=1)] = 1,
+    opens: Annotated[
+        list[str] | None, typer.Option(help="PHASE=ISO-DATE when a phase opens (repeatable).")
+    ] = None,
+    closes: Annotated[
+        list[str] | None, typer.Option(help="PHASE=ISO-DATE when a phase closes (repeatable).")
+    ] = None,
+    episodes: Annotated[
+        int | None, typer.Option(min=1, help="Override every task's episodes (a try-out).")
+    ] = None,
+) -> None:
+    """Create a challenge from a suite, or update the challenge of that name."""
+    from server.challenges import ChallengeOptions, load_challenge
+
+    s = settings()
+    options = ChallengeOptions(
+        title=title,
+        quota_per_day=quota_per_day,
+        quota_concurrent=quota_concurrent,
+        opens=_dates(opens, "--opens"),
+        closes=_dates(closes, "--closes"),
+        episodes=episodes,
+    )
+    sessions = _sessions(s)
+    try:
+        with sessions.begin() as db:
+            challenge = load_challenge(
+                db,
+                Path(suite) if Path(suite).exists() else suite,
+                options,
+                seed_secret=s.secret("seed_secret"),
+            )
+            slug = challenge.slug
+            phases = [(p.name, p.seed_commitment) for p in challenge.phases]
+    except (SuiteError, AppError) as exc:
+        console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(1) from None
+    console.print(f"challenge {slug} loaded")
+    for name, commitment in phases:
+        console.print(f"  phase {name}: seed commitment {commitment}")
+
+
+def demo(
+    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=1, max=65535)] = 8000,
+    episodes: Annotated[int, typer.Option(min=1, help="Episodes per task.")] = 3,
+    exit_when_done: Annotated[
+        bool, typer.Option(help="Stop once the example policies are evaluated.")
+    ] = False,
+) -> None:
+    """Run the service locally with the example policies evaluated on the leaderboard."""
+    import os
+
+    from server.demo import run_demo
+
+    os.environ.setdefault("MANIEVAL_DEV_MODE", "true")
+    os.environ.setdefault("MANIEVAL_ALLOW_LOCAL_POLICIES", "true")
+    os.environ.setdefault("MANIEVAL_COOKIE_SECURE", "false")
+    os.environ.setdefault("MANIEVAL_INLINE_WORKERS", str(min(2, os.cpu_count() or 1)))
+    code = run_demo(
+        settings(), host=host, port=port, episodes=episodes, exit_when_done=exit_when_done
+    )
+    raise typer.Exit(code)

@@ -1,0 +1,88 @@
+"""Operator commands against a real (SQLite) data directory."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from sqlalchemy import select
+from typer.testing import CliRunner
+
+from manieval.cli import app
+from server.db import make_engine, session_factory
+from server.models import Challenge, User
+from tests.server.conftest import PASSWORD, SUITE
+
+runner = CliRunner()
+
+
+@pytest.fixture
+def env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.setenv("MANIEVAL_DEV_MODE", "true")
+    monkeypatch.setenv("MANIEVAL_DATA_DIR", str(tmp_path))
+    return tmp_path
+
+
+def db_session(data: Path):  # type: ignore[no-untyped-def]
+    return session_factory(make_engine(f"sqlite:///{data / 'manieval.db'}"))()
+
+
+def test_admin_create_and_promote(env: Path) -> None:
+    r = runner.invoke(
+        app,
+        ["admin", "create", "chief", "chief@example.org", "--password-stdin"],
+        input=PASSWORD + "\n",
+    )
+    assert r.exit_code == 0, r.output
+    with db_session(env) as db:
+        user = db.scalar(select(User).where(User.username == "chief"))
+        assert user is not None
+        assert user.is_admin
+    weak = runner.invoke(
+        app, ["admin", "create", "other", "o@example.org", "--password-stdin"], input="123\n"
+    )
+    assert weak.exit_code == 1
+    assert "password" in weak.output
+
+
+def test_challenge_load_creates_then_updates(env: Path) -> None:
+    r = runner.invoke(
+        app,
+        ["challenge", "load", str(SUITE), "--quota-per-day", "3", "--closes", "test=2030-01-01"],
+    )
+    assert r.exit_code == 0, r.output
+    assert "seed commitment" in r.output
+    r = runner.invoke(
+        app, ["challenge", "load", str(SUITE), "--quota-per-day", "7", "--episodes", "4"]
+    )
+    assert r.exit_code == 0, r.output
+    with db_session(env) as db:
+        challenges = db.scalars(select(Challenge)).all()
+        assert len(challenges) == 1
+        assert challenges[0].quota_per_day == 7
+        assert "episodes: 4" in challenges[0].suite_yaml
+        closes = {p.name: p.closes_at for p in challenges[0].phases}
+        assert closes["test"] is not None
+        assert closes["test"].year == 2030
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["challenge", "load", "no-such-suite"], "no suite file"),
+        (["challenge", "load", str(SUITE), "--closes", "final=2030-01-01"], "no phase"),
+        (["challenge", "load", str(SUITE), "--opens", "dev"], "PHASE=ISO-DATE"),
+    ],
+)
+def test_challenge_load_errors(env: Path, args: list[str], message: str) -> None:
+    r = runner.invoke(app, args)
+    assert r.exit_code in (1, 2)
+    assert message in r.output
+
+
+def test_production_settings_error_is_clear(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("MANIEVAL_DEV_MODE", raising=False)
+    monkeypatch.delenv("MANIEVAL_SECRET_KEY", raising=False)
+    r = runner.invoke(app, ["db", "upgrade"])
+    assert r.exit_code == 2
+    assert "MANIEVAL_SECRET_KEY" in r.output
