@@ -99,13 +99,19 @@ def register(body: RegisterIn, request: Request, db: DBDep) -> UserOut:
     return _user_out(user)
 
 
-@router.post("/session", tags=["accounts"])
-def login(body: LoginIn, request: Request, response: Response, db: DBDep) -> SessionOut:
-    """Log in for the web pages: sets the session cookie and returns the CSRF token."""
+def _password_login(request: Request, db: DBDep, body: LoginIn) -> User:
+    """Rate-limited per address and per account name; one message for every failure."""
     limit(request, "login", key=body.login.strip().lower())
     user = accounts.authenticate(db, body.login, body.password)
     if user is None:
         raise Unauthorized("wrong username, email or password")
+    return user
+
+
+@router.post("/session", tags=["accounts"])
+def login(body: LoginIn, request: Request, response: Response, db: DBDep) -> SessionOut:
+    """Log in for the web pages: sets the session cookie and returns the CSRF token."""
+    user = _password_login(request, db, body)
     svc = services(request)
     cookie = accounts.open_session(db, user, days=svc.settings.session_days)
     db.commit()
@@ -160,10 +166,7 @@ def _token_out(token: ApiToken) -> TokenOut:
 @router.post("/auth/token", status_code=201, tags=["accounts"])
 def token_login(body: TokenLoginIn, request: Request, db: DBDep) -> NewTokenOut:
     """Exchange a username and password for a new named API token (what `manieval login` does)."""
-    limit(request, "login", key=body.login.strip().lower())
-    user = accounts.authenticate(db, body.login, body.password)
-    if user is None:
-        raise Unauthorized("wrong username, email or password")
+    user = _password_login(request, db, body)
     limit(request, "token", user=user)
     token, plaintext = accounts.create_token(db, user, body.name)
     db.commit()
@@ -278,11 +281,10 @@ def leaderboard(
     """Best public submission per user, by score (ties: the earlier submission first)."""
     challenge = get_challenge(db, slug)
     phase_row = get_phase(challenge, phase)
-    rows = services(request).leaderboards.rows(db, phase_row)
-    window = rows[(page - 1) * per_page : page * per_page]
-    items = [LeaderboardRowOut(**row.__dict__) for row in window]
+    board = services(request).leaderboards.page(db, phase_row.id, page, per_page)
+    items = [LeaderboardRowOut(**row.__dict__) for row in board.rows]
     out = LeaderboardOut(
-        challenge=slug, phase=phase, items=items, page=page, per_page=per_page, total=len(rows)
+        challenge=slug, phase=phase, items=items, page=page, per_page=per_page, total=board.total
     )
     if format == "csv":
         return Response(

@@ -2,8 +2,9 @@
 
 Rows live in ``leaderboard_entries``, recomputed for one (phase, user) whenever something that
 decides them changes (a result, a re-run, hiding, visibility, the baseline flag). Each change
-bumps the phase's ``leaderboard_version``; readers cache the ranked list per version, so a
-leaderboard request costs one indexed lookup of the version when nothing changed.
+bumps the phase's ``leaderboard_version``; readers cache pages per version, so a leaderboard
+request costs one indexed lookup of the version when nothing changed, and a page read by the
+rank index when something did.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import delete, select, update
+from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session as DB
 
 from server.models import LeaderboardEntry, Phase, State, Submission, TaskResultRow, User
@@ -108,32 +109,79 @@ class Row:
     tasks: dict[str, dict[str, float]]
 
 
-class LeaderboardCache:
-    """Ranked rows per (phase, version); a bounded LRU shared by the API's threads."""
+@dataclass(frozen=True)
+class Board:
+    rows: list[Row]
+    total: int
 
-    def __init__(self, size: int = 64) -> None:
-        self._rows: OrderedDict[tuple[int, int], list[Row]] = OrderedDict()
+
+@dataclass(frozen=True)
+class _Meta:
+    total: int
+    baselines: list[tuple[float, datetime, int]]  # rank keys of the baseline rows
+
+
+class LeaderboardCache:
+    """Pages of ranked rows per (phase, version, page); a bounded LRU shared by the threads.
+
+    A miss reads just that page by the rank index (and, once per version, the row count and
+    the baselines' positions, which fix the ranks of the rows after them), so even the first
+    request after a change costs a few indexed queries, not a read of the whole board.
+    """
+
+    def __init__(self, size: int = 256) -> None:
+        self._pages: OrderedDict[tuple[int, int, int, int], Board] = OrderedDict()
+        self._meta: OrderedDict[tuple[int, int], _Meta] = OrderedDict()
         self._size = size
         self._lock = threading.Lock()
 
-    def rows(self, db: DB, phase: Phase) -> list[Row]:
-        version = db.scalar(select(Phase.leaderboard_version).where(Phase.id == phase.id))
-        key = (phase.id, version or 0)
+    def page(self, db: DB, phase_id: int, page: int, per_page: int) -> Board:
+        version = db.scalar(select(Phase.leaderboard_version).where(Phase.id == phase_id)) or 0
+        key = (phase_id, version, page, per_page)
         with self._lock:
-            if key in self._rows:
-                self._rows.move_to_end(key)
-                return self._rows[key]
-        rows = ranked(db, phase.id)
+            if (hit := self._pages.get(key)) is not None:
+                self._pages.move_to_end(key)
+                return hit
+            meta = self._meta.get((phase_id, version))
+        if meta is None:
+            meta = _read_meta(db, phase_id)
+        board = Board(rows=_read_page(db, phase_id, page, per_page, meta), total=meta.total)
         with self._lock:
-            self._rows[key] = rows
-            while len(self._rows) > self._size:
-                self._rows.popitem(last=False)
-        return rows
+            self._meta[(phase_id, version)] = meta
+            self._pages[key] = board
+            for cache in (self._pages, self._meta):
+                while len(cache) > self._size:
+                    cache.popitem(last=False)
+        return board
 
 
-def ranked(db: DB, phase_id: int) -> list[Row]:
+_RANK_ORDER = (LeaderboardEntry.score.desc(), LeaderboardEntry.submitted_at, LeaderboardEntry.id)
+
+
+def _read_meta(db: DB, phase_id: int) -> _Meta:
+    total = db.scalar(
+        select(func.count())
+        .select_from(LeaderboardEntry)
+        .where(LeaderboardEntry.phase_id == phase_id)
+    )
+    baselines = db.execute(
+        select(LeaderboardEntry.score, LeaderboardEntry.submitted_at, LeaderboardEntry.id)
+        .where(LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.baseline.is_(True))
+        .order_by(*_RANK_ORDER)
+    ).all()
+    return _Meta(total=total or 0, baselines=[(s, t, i) for s, t, i in baselines])
+
+
+def _ahead(a: tuple[float, datetime, int], b: tuple[float, datetime, int]) -> bool:
+    """Whether rank key `a` comes before `b` (higher score, then earlier, then lower id)."""
+    return (-a[0], a[1], a[2]) < (-b[0], b[1], b[2])
+
+
+def _read_page(db: DB, phase_id: int, page: int, per_page: int, meta: _Meta) -> list[Row]:
+    offset = (page - 1) * per_page
     entries = db.execute(
         select(
+            LeaderboardEntry.id,
             LeaderboardEntry.username,
             LeaderboardEntry.submission_id,
             LeaderboardEntry.baseline,
@@ -142,11 +190,18 @@ def ranked(db: DB, phase_id: int) -> list[Row]:
             LeaderboardEntry.summary,
         )
         .where(LeaderboardEntry.phase_id == phase_id)
-        .order_by(LeaderboardEntry.score.desc(), LeaderboardEntry.submitted_at, LeaderboardEntry.id)
+        .order_by(*_RANK_ORDER)
+        .offset(offset)
+        .limit(per_page)
     ).all()
+    if not entries:
+        return []
+    first = (entries[0].score, entries[0].submitted_at, entries[0].id)
+    baselines_before = sum(1 for b in meta.baselines if _ahead(b, first))
+    rank = offset - baselines_before
     rows: list[Row] = []
-    rank = 0
-    for username, submission_id, baseline, score, submitted_at, data in entries:
+    for entry_id, username, submission_id, baseline, score, submitted_at, data in entries:
+        del entry_id
         if not baseline:
             rank += 1
         rows.append(

@@ -372,3 +372,60 @@ def test_two_workers_racing_one_submission_exactly_one_wins(
         assert db.get(Submission, sid).state == State.LAUNCHING  # type: ignore[union-attr]
         n = db.scalars(select(Transition).where(Transition.submission_id == sid)).all()
         assert len(n) == 2
+
+
+def test_leaderboard_pages_rank_around_baselines(db: Session) -> None:
+    """Every page, read alone by the index, numbers its rows as the whole board would."""
+    from server.leaderboard import LeaderboardCache
+    from server.models import LeaderboardEntry
+
+    challenge = make_challenge(db)
+    phase = challenge.phases[0]
+    users = [make_user(db, f"user{i}") for i in range(7)]
+    start = datetime(2026, 1, 1, tzinfo=UTC)
+    scores = [0.9, 0.5, 0.5, 0.95, 0.1, 0.5, 0.7]  # users 2 and 5 are baselines
+    for i, (user, score) in enumerate(zip(users, scores, strict=True)):
+        s = Submission(
+            user_id=user.id,
+            challenge_id=challenge.id,
+            phase_id=phase.id,
+            image="x",
+            pinned_image="x",
+            state=State.SUCCEEDED,
+            score=score,
+            created_at=start + timedelta(minutes=i),
+            updated_at=start,
+        )
+        db.add(s)
+        db.flush()
+        db.add(
+            LeaderboardEntry(
+                phase_id=phase.id,
+                submission_id=s.id,
+                user_id=user.id,
+                owner_key=None if i in (2, 5) else user.id,
+                baseline=i in (2, 5),
+                score=score,
+                submitted_at=s.created_at,
+                username=user.username,
+                summary={},
+            )
+        )
+    db.commit()
+    expected = [
+        ("user3", 1),
+        ("user0", 2),
+        ("user6", 3),
+        ("user1", 4),
+        ("user2", None),
+        ("user5", None),
+        ("user4", 5),
+    ]
+    cache = LeaderboardCache()
+    for per_page in (1, 2, 3, 7, 10):
+        seen = []
+        for page in range(1, 8):
+            board = cache.page(db, phase.id, page, per_page)
+            assert board.total == 7
+            seen += [(r.username, r.rank) for r in board.rows]
+        assert seen == expected, per_page
