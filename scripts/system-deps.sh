@@ -19,6 +19,8 @@ fi
 python3 -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
 # The tests pin image tags to digests against a real OCI registry (CNCF distribution).
 command -v docker-registry >/dev/null || missing+=(docker-registry)
+# The worker tests run real Celery workers against a private redis-server they start.
+command -v redis-server >/dev/null || missing+=(redis-server)
 command -v openssl >/dev/null || missing+=(openssl)  # signs the test registry's tokens
 
 [ ${#missing[@]} -eq 0 ] && exit 0

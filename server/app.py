@@ -35,6 +35,7 @@ from server.submissions import LOCAL_PREFIX, Resolved, Resolver, transition
 
 log = logging.getLogger(__name__)
 SWEEP_INTERVAL_S = 5.0
+RECONCILE_EVERY = 6  # sweeps: every 30 s
 
 
 class Registry(Protocol):
@@ -82,12 +83,14 @@ def _resolve_local(image: str, settings: Settings) -> Resolved:
 
 
 def inline_queue(sessions: sessionmaker[Session], settings: Settings) -> InlineQueue:
-    from worker.run import run_submission
+    from worker.run import run_next
 
-    return InlineQueue(
-        lambda sid, attempt: run_submission(sessions, settings, sid, attempt),
-        threads=settings.inline_workers,
-    )
+    def drain(_sid: int, _attempt: int) -> None:
+        # A message is a wake-up: run the fairest queued submissions until none can be claimed.
+        while run_next(sessions, settings) is not None:
+            pass
+
+    return InlineQueue(drain, threads=settings.inline_workers)
 
 
 def recover_inline(sessions: sessionmaker[Session], work: WorkQueue) -> None:
@@ -128,8 +131,13 @@ def create_app(
         sessions = session_factory(make_engine(settings.resolved_database_url))
     inline: InlineQueue | None = None
     if work is None:
-        inline = inline_queue(sessions, settings)
-        work = inline
+        if settings.queue == "celery":
+            from worker.queue import CeleryQueue
+
+            work = CeleryQueue(settings)
+        else:
+            inline = inline_queue(sessions, settings)
+            work = inline
     if limiter is None:
         limiter = _limiter(settings)
     dispatcher = Dispatcher(sessions, work)
@@ -145,7 +153,10 @@ def create_app(
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         sweeper = threading.Thread(
-            target=_sweep, args=(dispatcher, stop), name="manieval-outbox", daemon=True
+            target=_sweep,
+            args=(dispatcher, stop, sessions, inline),
+            name="manieval-sweep",
+            daemon=True,
         )
         if inline is not None and background:
             recover_inline(sessions, inline)
@@ -197,9 +208,25 @@ def _limiter(settings: Settings) -> RateLimiter:
     return MemoryRateLimiter()
 
 
-def _sweep(dispatcher: Dispatcher, stop: threading.Event) -> None:
+def _sweep(
+    dispatcher: Dispatcher,
+    stop: threading.Event,
+    sessions: sessionmaker[Session],
+    inline: InlineQueue | None,
+) -> None:
+    """Send what the outbox still holds; in the embedded mode also reconcile (with Celery,
+    beat does that)."""
+    from worker.reconcile import reconcile
+
+    passes = 0
     while not stop.wait(SWEEP_INTERVAL_S):
         dispatcher.dispatch()
+        passes += 1
+        if inline is not None and passes % RECONCILE_EVERY == 0:
+            try:
+                reconcile(sessions, inline)
+            except Exception:
+                log.exception("reconciling failed; the next pass will try again")
 
 
 def _install_error_handlers(app: FastAPI) -> None:

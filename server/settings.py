@@ -67,8 +67,18 @@ class Settings(BaseSettings):
     allow_local_policies: bool = False
     """Accept ``local:NAME`` submissions of the bundled example policies (demo only)."""
 
+    queue: Literal["inline", "celery"] = "inline"
+    """``inline``: worker threads in the server process (embedded default, no Redis);
+    ``celery``: Celery workers on Redis (``manieval`` in k8s/, docs/deploy.md)."""
+
+    broker_url: str = "redis://127.0.0.1:6379/0"
+    celery_queue: str = "manieval"
+
     inline_workers: int = Field(default=1, ge=1, le=64)
     """Evaluations the embedded server runs at once."""
+
+    max_running_per_user: int = Field(default=2, ge=1, le=1000)
+    """Evaluations of one participant running at once, across challenges (fairness)."""
 
     rate_limit_backend: Literal["memory", "redis"] = "memory"
     """``memory``: per process; ``redis``: shared by every API process (production)."""

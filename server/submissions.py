@@ -270,19 +270,35 @@ def rerun(db: DB, admin: User, submission: Submission, *, now: datetime | None =
     """An admin runs an ended submission again, as a new attempt with its own results."""
     if not admin.is_admin:
         raise Forbidden("only admins can re-run submissions")
+    if not new_attempt(db, submission, "re-run by an admin", now=now):
+        raise Conflict(f"submission {submission.id} has not ended; cancel it first")
+
+
+def new_attempt(
+    db: DB,
+    submission: Submission,
+    reason: str,
+    *,
+    from_states: frozenset[State] = FINAL_STATES,
+    now: datetime | None = None,
+) -> bool:
+    """Queue an ended submission again as attempt N+1 (its old results stay with attempt N).
+
+    False when it is not in one of `from_states` any more (someone else acted first).
+    """
     now = now or utcnow()
-    old = submission.attempt
+    old, previous = submission.attempt, submission.state
     result = db.execute(
         update(Submission)
         .where(
             Submission.id == submission.id,
             Submission.attempt == old,
-            Submission.state.in_(FINAL_STATES),
+            Submission.state.in_(from_states),
         )
         .values(
             attempt=old + 1,
             state=State.QUEUED,
-            reason="re-run by an admin",
+            reason=reason,
             updated_at=now,
             started_at=None,
             finished_at=None,
@@ -291,18 +307,19 @@ def rerun(db: DB, admin: User, submission: Submission, *, now: datetime | None =
             score=None,
             result=None,
             log_tail="",
+            progress=None,
         )
-        .execution_options(synchronize_session="fetch")
+        .execution_options(synchronize_session=False)
     )
     if result.rowcount != 1:  # type: ignore[attr-defined]
-        raise Conflict(f"submission {submission.id} has not ended; cancel it first")
+        return False
     db.add(
         Transition(
             submission_id=submission.id,
             attempt=old + 1,
-            from_state=submission.state,
+            from_state=previous,
             to_state=State.QUEUED,
-            reason="re-run by an admin",
+            reason=reason,
             at=now,
         )
     )
@@ -312,6 +329,7 @@ def rerun(db: DB, admin: User, submission: Submission, *, now: datetime | None =
     from server.leaderboard import refresh
 
     refresh(db, submission.phase_id, submission.user_id)
+    return True
 
 
 def get_submission(db: DB, submission_id: int) -> Submission:

@@ -11,8 +11,11 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from datetime import timedelta
 from pathlib import Path
+from typing import Any
 
+from sqlalchemy import update
 from sqlalchemy.orm import Session, sessionmaker
 
 from evaluator.plan import EvaluationPlan, build_plan
@@ -21,14 +24,17 @@ from evaluator.sources import LocalDirectory, PolicySource
 from server.challenges import seed_secret_for, suite_of
 from server.errors import Conflict
 from server.ingest import report_final, report_progress, report_state
-from server.models import State, Submission
+from server.models import State, Submission, utcnow
 from server.settings import Settings
 from server.submissions import LOCAL_PREFIX
+from worker.scheduling import claim_next
 
 log = logging.getLogger(__name__)
 
 EXAMPLES_DIR = Path(__file__).resolve().parent.parent / "examples" / "policies"
 PROGRESS_INTERVAL_S = 1.0
+HEARTBEAT_INTERVAL_S = 15.0
+DEADLINE_GRACE_S = 120.0  # beyond the suite's budget, before the reconciler times a run out
 
 
 class NotRunnable(Exception):
@@ -52,19 +58,32 @@ def policy_source(pinned: str, settings: Settings) -> PolicySource:
     raise NotRunnable("no container executor is configured on this worker")
 
 
-def run_submission(
+def run_next(
+    sessions: sessionmaker[Session], settings: Settings
+) -> tuple[int, State | None] | None:
+    """Claim the fairest queued submission and run it to a final state.
+
+    Returns (submission id, final state), or None when nothing could be claimed. Any number of
+    workers may call this at once: a claim is a conditional update only one of them wins.
+    """
+    with sessions() as db:
+        claimed = claim_next(db, max_running_per_user=settings.max_running_per_user)
+    if claimed is None:
+        return None
+    submission_id, attempt = claimed
+    return submission_id, execute(sessions, settings, submission_id, attempt)
+
+
+def execute(
     sessions: sessionmaker[Session], settings: Settings, submission_id: int, attempt: int
 ) -> State | None:
-    """Run the attempt if it is still queued; returns the final state it reached (None if the
-    attempt was not this worker's to run)."""
-    with sessions.begin() as db:
+    """Run a claimed (`launching`) attempt; returns the state it ended in."""
+    with sessions() as db:
         submission = db.get(Submission, submission_id)
         if submission is None or submission.attempt != attempt:
             return None
-        if submission.state != State.QUEUED:
-            return None  # already taken, cancelled, or done: nothing to do
-        if not report_state(db, submission_id, attempt, State.LAUNCHING, "starting the policy"):
-            return None
+        if submission.state != State.LAUNCHING:
+            return submission.state  # cancelled between the claim and now
         suite = suite_of(submission.challenge)
         phase = submission.phase.name
         pinned = submission.pinned_image
@@ -75,9 +94,15 @@ def run_submission(
     except Exception as exc:  # our configuration: error, with the reason
         return _finish(sessions, submission_id, attempt, State.ERROR, f"cannot run: {exc}")
 
+    deadline = utcnow() + timedelta(seconds=plan.limits.budget_s * 1.1 + DEADLINE_GRACE_S)
     with sessions.begin() as db:
         if not report_state(db, submission_id, attempt, State.RUNNING, "evaluating"):
             return _final_state(sessions, submission_id)
+        db.execute(
+            update(Submission)
+            .where(Submission.id == submission_id, Submission.attempt == attempt)
+            .values(deadline_at=deadline)
+        )
     try:
         result = _evaluate(sessions, submission_id, attempt, plan, source)
     except Exception as exc:
@@ -125,32 +150,44 @@ def _evaluate(
     total = plan.episode_count()
     done = 0
     last_report = 0.0
+    progress: dict[str, Any] = {"done": 0, "total": total}
     stopped = threading.Event()
+    finished = threading.Event()
     lock = threading.Lock()
+
+    def send() -> None:
+        with lock:
+            snapshot = dict(progress)
+        with sessions.begin() as db:
+            if not report_progress(db, submission_id, attempt, snapshot):
+                stopped.set()  # cancelled, or timed out or given up by the reconciler
 
     def report(run_index: int, _episode: EpisodeResult) -> None:
         nonlocal done, last_report
         with lock:
             done += 1
+            run = plan.runs[run_index]
+            progress.update(done=done, task=run.env_id, condition=run.condition.name)
             now = time.monotonic()
             if now - last_report < PROGRESS_INTERVAL_S and done < total:
                 return
             last_report = now
-            run = plan.runs[run_index]
-            progress = {
-                "done": done,
-                "total": total,
-                "task": run.env_id,
-                "condition": run.condition.name,
-            }
-        with sessions.begin() as db:
-            if not report_progress(db, submission_id, attempt, progress):
-                stopped.set()  # cancelled or timed out by the reconciler
+        send()
 
-    def should_stop() -> bool:
-        return stopped.is_set()
+    def heartbeat() -> None:  # also while an episode or a slow first call takes long
+        while not finished.wait(HEARTBEAT_INTERVAL_S):
+            try:
+                send()
+            except Exception:
+                log.exception("heartbeat of submission %s failed", submission_id)
 
-    result = evaluate(plan, source, on_episode=report, should_stop=should_stop)
+    beat = threading.Thread(target=heartbeat, name=f"heartbeat-{submission_id}", daemon=True)
+    beat.start()
+    try:
+        result = evaluate(plan, source, on_episode=report, should_stop=stopped.is_set)
+    finally:
+        finished.set()
+        beat.join()
     return None if stopped.is_set() else result
 
 

@@ -1,0 +1,120 @@
+"""The reconciler ends what is overdue or lost, re-queues our failures once, wakes the queue
+and removes leftovers."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.challenges import get_challenge, get_phase
+from server.ingest import report_state
+from server.models import State, Submission, Transition, utcnow
+from server.submissions import Resolved, submit
+from tests.server.conftest import RecordingQueue, make_challenge, make_user
+from worker.reconcile import reconcile
+
+
+def _submission(db: Session, name: str = "alice") -> Submission:
+    challenge = make_challenge(db, quota_concurrent=100, quota_per_day=100)
+    phase = get_phase(get_challenge(db, challenge.slug), "dev")
+    user = make_user(db, name)
+    s = submit(
+        db,
+        user,
+        challenge,
+        phase,
+        image="x",
+        description="",
+        public=True,
+        resolve=lambda _i: Resolved(pinned="x@sha256:" + "0" * 64, size_bytes=1),
+    )
+    db.commit()
+    return s
+
+
+def _running(db: Session, s: Submission, **values: object) -> None:
+    assert report_state(db, s.id, s.attempt, State.LAUNCHING, "go")
+    assert report_state(db, s.id, s.attempt, State.RUNNING, "go")
+    for key, value in values.items():
+        setattr(s, key, value)
+    db.commit()
+
+
+def test_overdue_runs_time_out(sessions: sessionmaker[Session], db: Session) -> None:
+    s = _submission(db)
+    _running(db, s, deadline_at=utcnow() + timedelta(minutes=5))
+    assert reconcile(sessions, RecordingQueue()).timed_out == []
+    report = reconcile(sessions, RecordingQueue(), now=utcnow() + timedelta(minutes=6))
+    assert report.timed_out == [s.id]
+    db.refresh(s)
+    assert s.state == State.TIMED_OUT
+    assert "time budget" in s.reason
+
+
+def test_a_lost_worker_is_our_error_and_runs_again_once(
+    sessions: sessionmaker[Session], db: Session
+) -> None:
+    s = _submission(db)
+    _running(db, s)
+    later = utcnow() + timedelta(minutes=4)
+    work = RecordingQueue()
+    report = reconcile(sessions, work, now=later)
+    assert report.lost == [s.id]
+    assert report.requeued == [s.id]
+    db.refresh(s)
+    assert (s.state, s.attempt) == (State.QUEUED, 2)
+    _running(db, s)
+    report = reconcile(sessions, work, now=later + timedelta(minutes=4))
+    assert report.lost == [s.id]
+    assert report.requeued == []
+    db.refresh(s)
+    assert (s.state, s.attempt) == (State.ERROR, 2)
+    assert "again" in s.reason
+    history = db.scalars(
+        select(Transition.to_state).where(Transition.submission_id == s.id).order_by(Transition.id)
+    ).all()
+    assert history == [
+        State.QUEUED,
+        State.LAUNCHING,
+        State.RUNNING,
+        State.ERROR,
+        State.QUEUED,
+        State.LAUNCHING,
+        State.RUNNING,
+        State.ERROR,
+    ]
+
+
+def test_heartbeats_keep_a_run_alive(sessions: sessionmaker[Session], db: Session) -> None:
+    s = _submission(db)
+    _running(db, s, heartbeat_at=utcnow() + timedelta(minutes=3))
+    assert reconcile(sessions, RecordingQueue(), now=utcnow() + timedelta(minutes=4)).lost == []
+
+
+def test_a_launch_that_never_starts_is_lost(sessions: sessionmaker[Session], db: Session) -> None:
+    s = _submission(db)
+    assert report_state(db, s.id, 1, State.LAUNCHING, "pulling")
+    db.commit()
+    assert reconcile(sessions, RecordingQueue(), now=utcnow() + timedelta(minutes=5)).lost == []
+    report = reconcile(sessions, RecordingQueue(), now=utcnow() + timedelta(minutes=16))
+    assert report.lost == [s.id]
+
+
+def test_waiting_submissions_get_wake_ups_and_leftovers_are_cleaned(
+    sessions: sessionmaker[Session], db: Session
+) -> None:
+    s = _submission(db)
+    seen: list[set[tuple[int, int]]] = []
+
+    def cleaner(active: set[tuple[int, int]]) -> list[str]:
+        seen.append(active)
+        return ["eval-99-1"]
+
+    work = RecordingQueue()
+    report = reconcile(sessions, work, cleaners=[cleaner], now=utcnow() + timedelta(minutes=3))
+    assert report.woken == 1
+    assert work.sent == [(s.id, 1), (0, 0)]  # the unsent outbox row, then a wake-up
+    assert seen == [{(s.id, 1)}]
+    assert report.removed == ["eval-99-1"]
