@@ -13,7 +13,7 @@ from sqlalchemy.orm import sessionmaker
 from server import accounts, security
 from server.dispatch import Dispatcher
 from server.errors import Forbidden, RateLimited, Unauthorized
-from server.leaderboard import LeaderboardCache
+from server.leaderboard import LeaderboardCache, RenderedPages
 from server.models import Session, User
 from server.ratelimit import RateLimiter
 from server.settings import Settings
@@ -32,6 +32,10 @@ class Services:
     resolve: Resolver
     dispatcher: Dispatcher
     leaderboards: LeaderboardCache = field(default_factory=LeaderboardCache)
+    leaderboard_pages: RenderedPages = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.leaderboard_pages = RenderedPages(self.settings.leaderboard_max_age)
 
     @property
     def csrf_key(self) -> bytes:

@@ -10,8 +10,9 @@ rank index when something did.
 from __future__ import annotations
 
 import threading
+import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
@@ -217,3 +218,52 @@ def _read_page(db: DB, phase_id: int, page: int, per_page: int, meta: _Meta) -> 
             )
         )
     return rows
+
+
+PageKey = tuple[str, str, int, int, str]  # slug, phase, page, per_page, format
+
+
+@dataclass
+class Rendered:
+    """A leaderboard response as sent, and the board version it shows."""
+
+    version: int
+    body: bytes
+    media_type: str
+    headers: dict[str, str] = field(default_factory=dict)
+    checked: float = 0.0  # time.monotonic() when the version was last confirmed
+
+
+class RenderedPages:
+    """Rendered leaderboard responses, trusted for `max_age` seconds after each check."""
+
+    def __init__(self, max_age: float, size: int = 512) -> None:
+        self._max_age = max_age
+        self._size = size
+        self._pages: OrderedDict[PageKey, Rendered] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def fresh(self, key: PageKey) -> Rendered | None:
+        with self._lock:
+            found = self._pages.get(key)
+            if found is None or time.monotonic() - found.checked >= self._max_age:
+                return None
+            self._pages.move_to_end(key)
+            return found
+
+    def revalidate(self, key: PageKey, version: int) -> Rendered | None:
+        """The cached response if it still shows `version` (and mark it checked now)."""
+        with self._lock:
+            found = self._pages.get(key)
+            if found is None or found.version != version:
+                return None
+            found.checked = time.monotonic()
+            return found
+
+    def store(self, key: PageKey, rendered: Rendered) -> None:
+        rendered.checked = time.monotonic()
+        with self._lock:
+            self._pages[key] = rendered
+            self._pages.move_to_end(key)
+            while len(self._pages) > self._size:
+                self._pages.popitem(last=False)

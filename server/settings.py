@@ -89,6 +89,9 @@ class Settings(BaseSettings):
     token_rate: str = "10/hour"
     submit_rate: str = "20/hour"
 
+    leaderboard_max_age: float = Field(default=1.0, ge=0, le=3600)
+    """Seconds a rendered leaderboard page is served before checking for a newer version."""
+
     session_days: int = 14
     cookie_secure: bool = True
     """Send the session cookie only over HTTPS; the embedded demo turns it off."""
