@@ -51,10 +51,12 @@ class ShardOutcome:
 
 @dataclass(frozen=True)
 class RunOptions:
-    """How to run: the budget's deadline (time.monotonic) and where videos go."""
+    """How to run: the budget's deadline (time.monotonic), where videos go, and where the
+    endpoint's socket is made (a fresh private directory unless a shared volume is named)."""
 
     deadline: float
     video_dir: Path | None = None
+    socket_dir: Path | None = None
 
 
 def make_shards(plan: EvaluationPlan, workers: int) -> list[Shard]:
@@ -225,7 +227,9 @@ def run_shard(
     """Start a policy process, run the shard's episodes through it, always stop it."""
     outcome = ShardOutcome()
     limits = plan.limits
-    endpoint = PolicyEndpoint(max_frame_bytes=limits.max_action_frame_bytes)
+    endpoint = PolicyEndpoint(
+        socket_dir=options.socket_dir, max_frame_bytes=limits.max_action_frame_bytes
+    )
     endpoint.deadline = options.deadline
     process = source.launch(endpoint=endpoint.address, socket_dir=endpoint.socket_dir)
     try:
@@ -255,7 +259,8 @@ def run_shard(
         process.stop()
     if outcome.abort is not None:
         run_index, index, abort = outcome.abort
-        reason = abort.reason if code in (None, 0) else f"{abort.reason} (exit code {code})"
+        ended = process.exit_detail() or (None if code in (None, 0) else f"exit code {code}")
+        reason = abort.reason if ended is None else f"{abort.reason} ({ended})"
         tail = process.log_tail()
         outcome.abort = (
             run_index,

@@ -33,6 +33,10 @@ class PolicyProcess(Protocol):
 
     def log_tail(self) -> str: ...
 
+    def exit_detail(self) -> str | None:
+        """After stop(): how the policy ended, when the launcher knows more than an exit code."""
+        ...
+
     def stop(self) -> None: ...
 
 
@@ -96,6 +100,10 @@ class LocalProcess:
     def log_tail(self) -> str:
         """The last bytes of the policy's stdout and stderr."""
         return self._log.text()
+
+    def exit_detail(self) -> str | None:
+        """Nothing beyond the exit code."""
+        return None
 
     def stop(self) -> None:
         """Terminate the process group; kill it if it does not exit within a few seconds."""

@@ -3,6 +3,7 @@
 import typer
 
 from evaluator.cli import evaluate
+from evaluator.job import evaluate_job
 from server.cli import admin_app, challenge_app, db_app, demo, serve
 
 app = typer.Typer(
@@ -19,6 +20,7 @@ def main() -> None:
 
 
 app.command("evaluate")(evaluate)
+app.command("evaluate-job", hidden=True)(evaluate_job)
 app.command("serve")(serve)
 app.command("demo")(demo)
 app.add_typer(db_app, name="db")

@@ -1,0 +1,535 @@
+"""An HTTP test double of the Kubernetes API server, with just the endpoints the worker uses.
+
+No API server can run on this machine, so the official client talks over HTTP to this one:
+batch/v1 Jobs (create, read, list by label with pagination, delete with a propagation policy)
+and core/v1 pods (list by label, read a container's log). Created Jobs are checked against the
+official schema, strictly, as the real server's validation would refuse them. Tests play the
+Job controller and the kubelet (`run`, `succeed`, `fail`, `exceed_deadline`), queue faults for
+the next matching requests, and inspect every request received.
+
+Where the real server behaves in a way that surprises clients, the double does the same: a
+foreground deletion answers with the Job itself (not a Status), batch/v1 deletes without a
+propagation policy orphan the pods, and logs come back as text/plain.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+import threading
+import uuid
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import UTC, datetime, timedelta
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+import kubernetes_validate
+from kubernetes.client import ApiClient, Configuration
+
+from evaluator.job import EvaluationJob
+from worker.kubernetes import INDEX_LABEL, Backoff, JobSpec, KubernetesExecutor, Resources
+
+NAMESPACE = "manieval-eval"
+SCHEMA_VERSION = "1.30"
+DIGEST = "sha256:" + "ab" * 32
+POLICY_IMAGE = f"127.0.0.1:5000/alice/policy@{DIGEST}"
+EVALUATOR_IMAGE = f"127.0.0.1:5000/manieval/evaluator@sha256:{'cd' * 32}"
+TINY_SUITE = Path(__file__).parents[1] / "evaluator" / "tiny_suite.yaml"
+
+Json = dict[str, Any]
+_JOBS = re.compile(r"^/apis/batch/v1/namespaces/([^/]+)/jobs(?:/([^/]+))?$")
+_PODS = re.compile(r"^/api/v1/namespaces/([^/]+)/pods(?:/([^/]+)/log)?$")
+_EPOCH = datetime(2026, 1, 1, tzinfo=UTC)
+
+
+def tiny_evaluation(*, seeds: Sequence[int] = (100, 101)) -> EvaluationJob:
+    """Two PickCube-v1 episodes of the tiny test suite, nominal condition only."""
+    return EvaluationJob(
+        suite_yaml=TINY_SUITE.read_text(),
+        phase="dev",
+        seeds={"PickCube-v1": tuple(seeds)},
+        conditions=("nominal",),
+    )
+
+
+def make_spec(
+    *,
+    submission_id: int = 7,
+    attempt: int = 1,
+    shards: int = 1,
+    gpu: bool = False,
+    runtime_class_name: str | None = None,
+    namespace: str = NAMESPACE,
+    policy_image: str = POLICY_IMAGE,
+    evaluation: EvaluationJob | None = None,
+    evaluator_resources: Resources | None = None,
+) -> JobSpec:
+    """A valid JobSpec with small resources; override what a test is about."""
+    return JobSpec(
+        submission_id=submission_id,
+        attempt=attempt,
+        namespace=namespace,
+        evaluator_image=EVALUATOR_IMAGE,
+        policy_image=policy_image,
+        evaluation=evaluation or tiny_evaluation(),
+        evaluator_resources=evaluator_resources or Resources("2", "4Gi", "2Gi"),
+        policy_resources=Resources("500m", "1Gi", "512Mi"),
+        gpu=gpu,
+        active_deadline_seconds=900,
+        ttl_seconds_after_finished=600,
+        runtime_class_name=runtime_class_name,
+        shards=shards,
+    )
+
+
+@dataclass
+class Fault:
+    method: str
+    path_part: str
+    status: int
+    retry_after: int | None = None
+    apply: bool = False
+    """Process the request anyway, then answer with the error (a lost response)."""
+
+
+@dataclass
+class Recorded:
+    method: str
+    path: str
+    query: dict[str, list[str]]
+    body: Any
+
+
+@dataclass
+class ApiServerDouble:
+    """In-memory Jobs, pods and logs behind an HTTP server on 127.0.0.1."""
+
+    jobs: dict[tuple[str, str], Json] = field(default_factory=dict)
+    pods: dict[tuple[str, str], Json] = field(default_factory=dict)
+    logs: dict[tuple[str, str, str], str] = field(default_factory=dict)
+    requests: list[Recorded] = field(default_factory=list)
+    deletions: list[tuple[str, str | None]] = field(default_factory=list)
+    faults: list[Fault] = field(default_factory=list)
+    hold_deletions: bool = False
+    """Foreground deletions leave the Job terminating until `finish_deletions`."""
+    lock: threading.RLock = field(default_factory=threading.RLock)
+    _clock: int = 0
+
+    def __post_init__(self) -> None:
+        double = self
+
+        class Handler(_Handler):
+            server_double = double
+
+        self._server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self._server.daemon_threads = True
+        self._thread = threading.Thread(
+            target=self._server.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True
+        )
+
+    @property
+    def host(self) -> str:
+        return f"http://127.0.0.1:{self._server.server_address[1]}"
+
+    def __enter__(self) -> ApiServerDouble:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+
+    # What tests arrange.
+
+    def fail_next(
+        self,
+        method: str,
+        path_part: str,
+        *statuses: int,
+        retry_after: int | None = None,
+        apply: bool = False,
+    ) -> None:
+        """Answer the next requests matching `method` and `path_part` with these statuses."""
+        with self.lock:
+            self.faults += [Fault(method, path_part, s, retry_after, apply) for s in statuses]
+
+    def put_job(self, manifest: Json) -> Json:
+        """Store a Job as if someone had created it earlier."""
+        with self.lock:
+            return self._create_job(manifest["metadata"]["namespace"], copy.deepcopy(manifest))
+
+    def run(self, namespace: str, name: str, *, ready: bool = True) -> list[str]:
+        """The controller creates the pods; with `ready`, the kubelet has started them."""
+        with self.lock:
+            job = self.jobs[(namespace, name)]
+            pods = [self._add_pod(job, index, ready=ready) for index in _indexes(job)]
+            count = len(pods)
+            job["status"].update(active=count, ready=count if ready else 0, startTime=self._now())
+            return pods
+
+    def succeed(
+        self,
+        namespace: str,
+        name: str,
+        logs: Sequence[str],
+        *,
+        policy_logs: Sequence[str] = (),
+    ) -> None:
+        """Every pod's evaluator exits 0 having printed `logs[index]`; the Job completes."""
+        with self.lock:
+            pods = self._pods_of(namespace, name) or [
+                self.pods[(namespace, p)] for p in self.run(namespace, name)
+            ]
+            pods = [p for p in pods if p["status"]["phase"] != "Failed"]  # disrupted: replaced
+            for pod in pods:
+                index = int(pod["metadata"]["labels"].get(INDEX_LABEL, "0"))
+                pod["status"]["phase"] = "Succeeded"
+                pod_name = pod["metadata"]["name"]
+                self.logs[(namespace, pod_name, "evaluator")] = logs[index]
+                if index < len(policy_logs):
+                    self.logs[(namespace, pod_name, "policy")] = policy_logs[index]
+            job = self.jobs[(namespace, name)]
+            job["status"].update(active=0, ready=0, succeeded=len(pods), completionTime=self._now())
+            if job["spec"].get("completionMode") == "Indexed":
+                job["status"]["completedIndexes"] = f"0-{len(pods) - 1}"
+            self._conclude(job, "SuccessCriteriaMet", "Complete", "CompletionsReached", "")
+
+    def fail(
+        self,
+        namespace: str,
+        name: str,
+        *,
+        reason: str = "PodFailurePolicy",
+        message: str = "Container evaluator for pod x failed with exit code 1",
+        logs: Sequence[str] = (),
+    ) -> None:
+        """The pods failed; the Job fails with `reason`."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                pod["status"]["phase"] = "Failed"
+                index = int(pod["metadata"]["labels"].get(INDEX_LABEL, "0"))
+                if index < len(logs):
+                    self.logs[(namespace, pod["metadata"]["name"], "evaluator")] = logs[index]
+            job = self.jobs[(namespace, name)]
+            job["status"].update(active=0, ready=0, failed=1)
+            self._conclude(job, "FailureTarget", "Failed", reason, message)
+
+    def exceed_deadline(self, namespace: str, name: str) -> None:
+        """activeDeadlineSeconds passed: the controller deletes the running pods, fails the Job."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                del self.pods[(namespace, pod["metadata"]["name"])]
+            job = self.jobs[(namespace, name)]
+            job["status"].update(active=0, ready=0, failed=1)
+            message = "Job was active longer than specified deadline"
+            self._conclude(job, "FailureTarget", "Failed", "DeadlineExceeded", message)
+
+    def disrupt(self, namespace: str, name: str) -> str:
+        """Evict the Job's pod (DisruptionTarget); the controller makes a new one (its name)."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                pod["status"]["phase"] = "Failed"
+                pod["status"]["conditions"] = [
+                    {
+                        "type": "DisruptionTarget",
+                        "status": "True",
+                        "reason": "EvictionByEvictionAPI",
+                    }
+                ]
+            return self._add_pod(self.jobs[(namespace, name)], 0, ready=True)
+
+    def finish_deletions(self) -> None:
+        """The garbage collector finishes every pending foreground deletion."""
+        with self.lock:
+            for key, job in list(self.jobs.items()):
+                if job["metadata"].get("deletionTimestamp"):
+                    del self.jobs[key]
+
+    def pods_of(self, namespace: str, name: str) -> list[Json]:
+        with self.lock:
+            return copy.deepcopy(self._pods_of(namespace, name))
+
+    def created_bodies(self) -> list[Any]:
+        return [r.body for r in self.requests if r.method == "POST"]
+
+    # The API.
+
+    def handle(self, method: str, url: str, body: Any) -> tuple[tuple[int, Any], int | None]:
+        """Answer one request: ((status, payload), Retry-After seconds or None)."""
+        parts = urlsplit(url)
+        query = parse_qs(parts.query)
+        with self.lock:
+            self.requests.append(Recorded(method, parts.path, query, copy.deepcopy(body)))
+            fault = self._take_fault(method, parts.path)
+            if fault is not None and not fault.apply:
+                return _error(fault.status), fault.retry_after
+            status, payload = self._route(method, parts.path, query, body)
+            if fault is not None:
+                return _error(fault.status), fault.retry_after
+            return (status, payload), None
+
+    def _route(
+        self, method: str, path: str, query: dict[str, list[str]], body: Any
+    ) -> tuple[int, Any]:
+        if match := _JOBS.match(path):
+            namespace, name = match.groups()
+            if name is None and method == "POST":
+                return self._post_job(namespace, body)
+            if name is None and method == "GET":
+                return 200, self._list("JobList", "batch/v1", self._in(self.jobs, namespace), query)
+            if name is not None and method == "GET":
+                job = self.jobs.get((namespace, name))
+                return (
+                    (200, job)
+                    if job
+                    else _status(404, "NotFound", f'jobs.batch "{name}" not found')
+                )
+            if name is not None and method == "DELETE":
+                return self._delete_job(namespace, name, query, body)
+        if match := _PODS.match(path):
+            namespace, name = match.groups()
+            if name is None and method == "GET":
+                return 200, self._list("PodList", "v1", self._in(self.pods, namespace), query)
+            if name is not None and method == "GET":
+                return self._log(namespace, name, query)
+        return _status(404, "NotFound", f"the server could not find {method} {path}")
+
+    def _post_job(self, namespace: str, body: Json) -> tuple[int, Any]:
+        try:
+            kubernetes_validate.validate(body, SCHEMA_VERSION, strict=True)
+        except kubernetes_validate.ValidationError as exc:
+            path = ".".join(str(p) for p in exc.path)
+            return _status(422, "Invalid", f"Job.batch is invalid: {path}: {exc.message}")
+        name = body["metadata"]["name"]
+        if (namespace, name) in self.jobs:
+            return _status(409, "AlreadyExists", f'jobs.batch "{name}" already exists')
+        return 201, self._create_job(namespace, body)
+
+    def _create_job(self, namespace: str, job: Json) -> Json:
+        meta = job["metadata"]
+        uid = str(uuid.uuid4())
+        meta.update(
+            namespace=namespace,
+            uid=uid,
+            resourceVersion=str(len(self.requests)),
+            creationTimestamp=self._now(),
+            generation=1,
+        )
+        controller = {"batch.kubernetes.io/controller-uid": uid, "controller-uid": uid}
+        names = {"batch.kubernetes.io/job-name": meta["name"], "job-name": meta["name"]}
+        template_meta = job["spec"]["template"].setdefault("metadata", {})
+        template_meta.setdefault("labels", {}).update(controller | names)
+        job["spec"]["selector"] = {"matchLabels": {"batch.kubernetes.io/controller-uid": uid}}
+        job["status"] = {}
+        self.jobs[(namespace, meta["name"])] = job
+        return job
+
+    def _delete_job(
+        self, namespace: str, name: str, query: dict[str, list[str]], body: Any
+    ) -> tuple[int, Any]:
+        job = self.jobs.get((namespace, name))
+        if job is None:
+            return _status(404, "NotFound", f'jobs.batch "{name}" not found')
+        policy = (body or {}).get("propagationPolicy") or query.get("propagationPolicy", [None])[0]
+        self.deletions.append((name, policy))
+        if policy in ("Foreground", "Background"):
+            for pod in self._pods_of(namespace, name):
+                del self.pods[(namespace, pod["metadata"]["name"])]
+        if policy == "Foreground":
+            job["metadata"].update(deletionTimestamp=self._now(), finalizers=["foregroundDeletion"])
+            answer = copy.deepcopy(job)
+            if not self.hold_deletions:
+                del self.jobs[(namespace, name)]
+            return 200, answer  # the object, still present: not a Status
+        del self.jobs[(namespace, name)]  # without a policy, batch/v1 orphans the pods
+        return 200, {"kind": "Status", "apiVersion": "v1", "status": "Success", "metadata": {}}
+
+    def _log(self, namespace: str, name: str, query: dict[str, list[str]]) -> tuple[int, Any]:
+        pod = self.pods.get((namespace, name))
+        if pod is None:
+            return _status(404, "NotFound", f'pods "{name}" not found')
+        spec = pod["spec"]
+        names = [c["name"] for c in spec["containers"] + spec.get("initContainers", [])]
+        container = query.get("container", [""])[0]
+        if container not in names:
+            return _status(400, "BadRequest", f"container {container} is not valid for pod {name}")
+        if pod["status"]["phase"] == "Pending":
+            message = f'container "{container}" in pod "{name}" is waiting to start'
+            return _status(400, "BadRequest", message)
+        text = self.logs.get((namespace, name, container), "")
+        tail = query.get("tailLines", [None])[0]
+        if tail is not None:
+            text = "".join(text.splitlines(keepends=True)[-int(tail) :])
+        return 200, _Text(text)
+
+    def _list(
+        self, kind: str, api_version: str, objects: list[Json], query: dict[str, list[str]]
+    ) -> Json:
+        selector = query.get("labelSelector", [""])[0]
+        matching = [o for o in objects if _selects(selector, o["metadata"].get("labels") or {})]
+        start = int(query.get("continue", ["0"])[0])
+        limit = int(query.get("limit", [str(len(matching) or 1)])[0])
+        page = matching[start : start + limit]
+        meta: Json = {"resourceVersion": str(len(self.requests))}
+        if start + limit < len(matching):
+            meta["continue"] = str(start + limit)
+        return {"kind": kind, "apiVersion": api_version, "metadata": meta, "items": page}
+
+    # Helpers.
+
+    def _take_fault(self, method: str, path: str) -> Fault | None:
+        for i, fault in enumerate(self.faults):
+            if fault.method == method and fault.path_part in path:
+                return self.faults.pop(i)
+        return None
+
+    def _now(self) -> str:
+        self._clock += 1
+        return (_EPOCH + timedelta(seconds=self._clock)).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+    @staticmethod
+    def _in(store: dict[tuple[str, str], Json], namespace: str) -> list[Json]:
+        return [obj for (ns, _), obj in sorted(store.items()) if ns == namespace]
+
+    def _pods_of(self, namespace: str, name: str) -> list[Json]:
+        return [
+            pod
+            for (ns, _), pod in self.pods.items()
+            if ns == namespace and pod["metadata"]["labels"].get("job-name") == name
+        ]
+
+    def _add_pod(self, job: Json, index: int, *, ready: bool) -> str:
+        namespace, job_name = job["metadata"]["namespace"], job["metadata"]["name"]
+        template = copy.deepcopy(job["spec"]["template"])
+        name = f"{job_name}-{index}-{uuid.uuid4().hex[:5]}"
+        labels = template["metadata"]["labels"]
+        annotations = {}
+        if job["spec"].get("completionMode") == "Indexed":
+            labels[INDEX_LABEL] = str(index)
+            annotations[INDEX_LABEL] = str(index)
+        owner = {"apiVersion": "batch/v1", "kind": "Job", "name": job_name, "controller": True}
+        self.pods[(namespace, name)] = {
+            "apiVersion": "v1",
+            "kind": "Pod",
+            "metadata": {
+                "name": name,
+                "namespace": namespace,
+                "uid": str(uuid.uuid4()),
+                "labels": labels,
+                "annotations": annotations,
+                "creationTimestamp": self._now(),
+                "ownerReferences": [owner | {"uid": job["metadata"]["uid"]}],
+            },
+            "spec": template["spec"],
+            "status": {"phase": "Running" if ready else "Pending"},
+        }
+        return name
+
+    def _conclude(self, job: Json, interim: str, final: str, reason: str, message: str) -> None:
+        now = self._now()
+        job["status"]["conditions"] = [
+            {
+                "type": kind,
+                "status": "True",
+                "reason": reason,
+                "message": message,
+                "lastProbeTime": now,
+                "lastTransitionTime": now,
+            }
+            for kind in (interim, final)
+        ]
+
+
+class _Text(str):
+    """A plain-text answer (pod logs)."""
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server_double: ApiServerDouble
+
+    def log_message(self, format: str, *args: Any) -> None:  # quiet
+        pass
+
+    def _serve(self) -> None:
+        length = int(self.headers.get("Content-Length") or 0)
+        raw = self.rfile.read(length) if length else b""
+        body = json.loads(raw) if raw else None
+        (status, payload), retry_after = self.server_double.handle(self.command, self.path, body)
+        if isinstance(payload, _Text):
+            data, kind = payload.encode(), "text/plain; charset=utf-8"
+        else:
+            data, kind = json.dumps(payload).encode(), "application/json"
+        self.send_response(status)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(data)))
+        if retry_after is not None:
+            self.send_header("Retry-After", str(retry_after))
+        self.end_headers()
+        self.wfile.write(data)
+
+    do_GET = do_POST = do_DELETE = _serve
+
+
+def _indexes(job: Json) -> range:
+    spec = job["spec"]
+    return range(spec.get("completions", 1) if spec.get("completionMode") == "Indexed" else 1)
+
+
+def _status(code: int, reason: str, message: str) -> tuple[int, Json]:
+    return code, {
+        "kind": "Status",
+        "apiVersion": "v1",
+        "metadata": {},
+        "status": "Failure",
+        "message": message,
+        "reason": reason,
+        "code": code,
+    }
+
+
+def _error(code: int) -> tuple[int, Json]:
+    reasons = {429: "TooManyRequests", 500: "InternalError", 503: "ServiceUnavailable"}
+    return _status(code, reasons.get(code, "Failure"), f"injected fault {code}")
+
+
+def _selects(selector: str, labels: dict[str, str]) -> bool:
+    """Equality (`k=v`, `k==v`), inequality (`k!=v`) and existence (`k`) requirements."""
+    for requirement in filter(None, (r.strip() for r in selector.split(","))):
+        if "!=" in requirement:
+            key, value = requirement.split("!=", 1)
+            if labels.get(key) == value:
+                return False
+        elif "=" in requirement:
+            key, value = requirement.replace("==", "=").split("=", 1)
+            if labels.get(key) != value:
+                return False
+        elif requirement not in labels:
+            return False
+    return True
+
+
+@contextmanager
+def running_apiserver() -> Iterator[ApiServerDouble]:
+    """A started double, shut down afterwards (wrap it in a fixture)."""
+    with ApiServerDouble() as double:
+        yield double
+
+
+def executor_for(
+    double: ApiServerDouble, *, sleeps: list[float] | None = None, attempts: int = 6
+) -> KubernetesExecutor:
+    """An executor whose official client talks to `double`; waits are recorded, not slept."""
+    configuration = Configuration(host=double.host)
+    recorded = sleeps if sleeps is not None else []
+    return KubernetesExecutor(
+        ApiClient(configuration),
+        namespace=NAMESPACE,
+        backoff=Backoff(attempts=attempts, base_s=0.5, cap_s=8.0),
+        sleep=recorded.append,
+        jitter=lambda: 0.5,
+    )

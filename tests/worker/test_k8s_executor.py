@@ -1,0 +1,305 @@
+"""The Job lifecycle through the official client, against the API-server double over HTTP."""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Iterator
+from datetime import UTC, datetime
+
+import pytest
+
+from evaluator.evaluation import build_result
+from evaluator.job import ShardReport, result_from_logs, write_document
+from evaluator.plan import EvaluationPlan
+from evaluator.results import EpisodeResult, EvaluationResult
+from evaluator.runner import ShardOutcome
+from tests.worker.k8s_double import (
+    NAMESPACE,
+    ApiServerDouble,
+    executor_for,
+    make_spec,
+    running_apiserver,
+)
+from worker.kubernetes import (
+    Backoff,
+    JobConflict,
+    JobStatus,
+    KubernetesError,
+    StartedJob,
+    build_job,
+    job_labels,
+)
+
+STARTED = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
+
+
+@pytest.fixture
+def apiserver() -> Iterator[ApiServerDouble]:
+    with running_apiserver() as double:
+        yield double
+
+
+def episode(index: int, seed: int, *, success: bool = True) -> EpisodeResult:
+    return EpisodeResult(
+        index=index,
+        seed=seed,
+        success_once=success,
+        success_at_end=success,
+        steps=5,
+        episode_return=1.5,
+        wall_time_s=0.1,
+    )
+
+
+def plan_of(spec_shards: int = 1) -> EvaluationPlan:
+    return make_spec(shards=spec_shards).evaluation.plan()
+
+
+def result_log(plan: EvaluationPlan) -> tuple[EvaluationResult, str]:
+    """A pod's evaluator log: noise around the printed result document."""
+    episodes = [(0, episode(i, seed)) for i, seed in enumerate(plan.runs[0].seeds)]
+    result = build_result(plan, "image", [ShardOutcome(episodes=episodes)], started=STARTED)
+    out = io.StringIO()
+    out.write("manieval: run 0 episode 0: success\nsapien: warning\n")
+    write_document(result, out)
+    out.write("exiting\n")
+    return result, out.getvalue()
+
+
+def shard_log(plan: EvaluationPlan, index: int, shards: int) -> str:
+    run = plan.runs[0]
+    mine = [(0, episode(i, s)) for i, s in enumerate(run.seeds) if i % shards == index]
+    report = ShardReport(
+        index=index,
+        shards=shards,
+        policy="image",
+        versions=build_result(plan, "x", [], started=STARTED).versions,
+        started_at=STARTED,
+        finished_at=STARTED,
+        episodes=mine,
+    )
+    out = io.StringIO()
+    write_document(report, out)
+    return out.getvalue()
+
+
+def test_a_job_is_created_from_the_manifest_and_runs_to_success(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    spec = make_spec()
+    assert executor.start(spec) == StartedJob("eval-7-1", adopted=False)
+    assert apiserver.created_bodies() == [build_job(spec)]
+    assert executor.status(7, 1) == JobStatus("pending")
+    apiserver.run(NAMESPACE, "eval-7-1")
+    assert executor.status(7, 1) == JobStatus("running")
+    result, log = result_log(plan_of())
+    apiserver.succeed(NAMESPACE, "eval-7-1", [log])
+    assert executor.status(7, 1) == JobStatus("succeeded")
+    logs = executor.collect(7, 1)
+    assert logs == [log]
+    assert result_from_logs(plan_of(), logs) == result
+
+
+def test_a_started_but_unscheduled_pod_keeps_the_job_pending(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    apiserver.run(NAMESPACE, "eval-7-1", ready=False)
+    assert executor.status(7, 1) == JobStatus("pending")
+    assert executor.collect(7, 1) == [""]  # the evaluator has not started: no log yet
+
+
+def test_an_indexed_job_gives_one_log_per_shard_and_they_merge(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    spec = make_spec(shards=2)
+    executor.start(spec)
+    assert len(apiserver.run(NAMESPACE, "eval-7-1")) == 2
+    plan = spec.evaluation.plan()
+    logs = [shard_log(plan, 0, 2), shard_log(plan, 1, 2)]
+    apiserver.succeed(NAMESPACE, "eval-7-1", logs)
+    collected = executor.collect(7, 1)
+    assert collected == logs
+    merged = result_from_logs(plan, collected)
+    assert [e.seed for e in merged.conditions[0].tasks[0].episodes] == [100, 101]
+    assert merged.status == "completed"
+
+
+def test_the_policy_log_tail_can_be_collected_too(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    policy_log = "".join(f"line {i}\n" for i in range(10))
+    apiserver.succeed(NAMESPACE, "eval-7-1", ["x"], policy_logs=[policy_log])
+    assert executor.collect(7, 1, container="policy", tail_lines=2) == ["line 8\nline 9\n"]
+
+
+def test_after_a_disruption_the_replacement_pods_log_is_collected(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    [first] = apiserver.run(NAMESPACE, "eval-7-1")
+    apiserver.logs[(NAMESPACE, first, "evaluator")] = "evicted half way"
+    apiserver.disrupt(NAMESPACE, "eval-7-1")
+    apiserver.succeed(NAMESPACE, "eval-7-1", ["the rerun's log"])
+    assert executor.collect(7, 1) == ["the rerun's log"]
+
+
+@pytest.mark.parametrize("reason", ["PodFailurePolicy", "BackoffLimitExceeded"])
+def test_a_failed_job_reports_the_controllers_reason(apiserver: ApiServerDouble, reason: str):
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    apiserver.run(NAMESPACE, "eval-7-1")
+    apiserver.fail(NAMESPACE, "eval-7-1", reason=reason, message="evaluator exit code 1")
+    status = executor.status(7, 1)
+    assert status.phase == "failed"
+    assert status.reason == f"{reason}: evaluator exit code 1"
+
+
+def test_a_failed_jobs_evaluator_log_is_still_readable(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    apiserver.run(NAMESPACE, "eval-7-1")
+    apiserver.fail(NAMESPACE, "eval-7-1", logs=["Traceback (most recent call last): ..."])
+    assert executor.collect(7, 1) == ["Traceback (most recent call last): ..."]
+
+
+def test_a_job_past_its_deadline_is_deadline_exceeded(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    apiserver.run(NAMESPACE, "eval-7-1")
+    apiserver.exceed_deadline(NAMESPACE, "eval-7-1")
+    status = executor.status(7, 1)
+    assert status.phase == "deadline_exceeded"
+    assert "DeadlineExceeded" in status.reason
+    assert executor.collect(7, 1) == [""]  # the controller deleted the running pod
+
+
+def test_a_job_that_does_not_exist_is_missing(apiserver: ApiServerDouble):
+    assert executor_for(apiserver).status(99, 1) == JobStatus("missing", "no Job eval-99-1")
+
+
+def test_an_existing_job_of_the_same_attempt_is_adopted_on_409(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    spec = make_spec()
+    apiserver.put_job(build_job(spec))
+    assert executor.start(spec) == StartedJob("eval-7-1", adopted=True)
+    assert len(apiserver.jobs) == 1
+
+
+def test_a_lost_create_response_is_retried_and_the_created_job_adopted(
+    apiserver: ApiServerDouble,
+):
+    sleeps: list[float] = []
+    executor = executor_for(apiserver, sleeps=sleeps)
+    apiserver.fail_next("POST", "/jobs", 500, apply=True)  # created, but the answer is a 500
+    assert executor.start(make_spec()) == StartedJob("eval-7-1", adopted=True)
+    assert len(apiserver.jobs) == 1
+    assert len(sleeps) == 1
+
+
+def test_a_409_for_a_job_of_another_attempt_is_a_conflict(apiserver: ApiServerDouble):
+    foreign = build_job(make_spec(submission_id=7, attempt=1))
+    foreign["metadata"]["labels"] = job_labels(8, 1)
+    apiserver.put_job(foreign)
+    with pytest.raises(JobConflict, match="other labels"):
+        executor_for(apiserver).start(make_spec())
+
+
+def test_a_409_for_a_job_being_deleted_is_a_conflict_not_an_adoption(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    apiserver.hold_deletions = True
+    executor.start(make_spec())
+    assert executor.cancel(7, 1)
+    with pytest.raises(JobConflict, match="being deleted"):
+        executor.start(make_spec())
+    apiserver.finish_deletions()
+    assert executor.start(make_spec()).adopted is False
+
+
+def test_429_and_5xx_are_retried_with_backoff_then_succeed(apiserver: ApiServerDouble):
+    sleeps: list[float] = []
+    executor = executor_for(apiserver, sleeps=sleeps)
+    apiserver.fail_next("POST", "/jobs", 500, 503)
+    apiserver.fail_next("POST", "/jobs", 429, retry_after=3)
+    assert executor.start(make_spec()) == StartedJob("eval-7-1", adopted=False)
+    # base 0.5 s doubling, times the (fixed) jitter 0.5; a Retry-After is honoured
+    assert sleeps == [0.25, 0.5, 3.0]
+    assert len(apiserver.created_bodies()) == 4
+
+
+def test_reads_and_deletes_are_retried_too(apiserver: ApiServerDouble):
+    sleeps: list[float] = []
+    executor = executor_for(apiserver, sleeps=sleeps)
+    executor.start(make_spec())
+    apiserver.fail_next("GET", "/jobs/eval-7-1", 502)
+    apiserver.fail_next("DELETE", "/jobs/eval-7-1", 504)
+    assert executor.status(7, 1).phase == "pending"
+    assert executor.cancel(7, 1)
+    assert len(sleeps) == 2
+
+
+def test_retries_stop_after_the_last_attempt(apiserver: ApiServerDouble):
+    sleeps: list[float] = []
+    executor = executor_for(apiserver, sleeps=sleeps, attempts=3)
+    apiserver.fail_next("POST", "/jobs", 500, 500, 500, 500)
+    with pytest.raises(KubernetesError) as caught:
+        executor.start(make_spec())
+    assert caught.value.status == 500
+    assert len(apiserver.created_bodies()) == 3
+    assert len(sleeps) == 2
+
+
+@pytest.mark.parametrize("status", [400, 401, 403, 422])
+def test_client_errors_are_not_retried(apiserver: ApiServerDouble, status: int):
+    sleeps: list[float] = []
+    executor = executor_for(apiserver, sleeps=sleeps)
+    apiserver.fail_next("POST", "/jobs", status)
+    with pytest.raises(KubernetesError) as caught:
+        executor.start(make_spec())
+    assert caught.value.status == status
+    assert sleeps == []
+    assert len(apiserver.requests) == 1
+
+
+def test_backoff_grows_exponentially_up_to_its_cap_with_full_jitter():
+    backoff = Backoff(attempts=20, base_s=0.5, cap_s=8.0)
+    ceilings = [backoff.delay(retry, 0.999999, None) for retry in range(10)]
+    assert ceilings == sorted(ceilings)
+    assert max(ceilings) < 8.0
+    assert ceilings[0] == pytest.approx(0.5, rel=1e-5)
+    assert backoff.delay(3, 0.0, None) == 0.0  # full jitter: anything from zero
+    assert backoff.delay(0, 0.1, 60.0) == 8.0  # a Retry-After beyond the cap is capped
+
+
+def test_cancel_deletes_in_the_foreground_and_takes_the_pods(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    apiserver.run(NAMESPACE, "eval-7-1")
+    assert executor.cancel(7, 1) is True
+    assert apiserver.deletions == [("eval-7-1", "Foreground")]
+    assert apiserver.pods_of(NAMESPACE, "eval-7-1") == []
+    assert executor.status(7, 1).phase == "missing"
+
+
+def test_cancelling_a_job_that_is_gone_is_not_an_error(apiserver: ApiServerDouble):
+    assert executor_for(apiserver).cancel(7, 1) is False
+
+
+def test_orphan_cleanup_deletes_only_our_jobs_of_inactive_attempts(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    for submission, attempt in [(7, 1), (8, 1), (9, 2), (7, 2)]:
+        executor.start(make_spec(submission_id=submission, attempt=attempt))
+    stranger = build_job(make_spec(submission_id=5))
+    stranger["metadata"] |= {"name": "someone-elses", "labels": {"app": "other"}}
+    apiserver.put_job(stranger)
+    deleted = executor.delete_orphans(keep={(7, 2), (9, 1)})
+    assert sorted(deleted) == ["eval-7-1", "eval-8-1", "eval-9-2"]
+    assert sorted(name for _, name in apiserver.jobs) == ["eval-7-2", "someone-elses"]
+    assert {policy for _, policy in apiserver.deletions} == {"Foreground"}
+
+
+def test_list_jobs_follows_pagination_and_reports_each_attempt(apiserver: ApiServerDouble):
+    for submission in range(1, 202):  # one more than a page
+        apiserver.put_job(build_job(make_spec(submission_id=submission)))
+    apiserver.run(NAMESPACE, "eval-3-1")
+    refs = executor_for(apiserver).list_jobs()
+    assert sorted(r.submission_id for r in refs) == list(range(1, 202))
+    assert next(r for r in refs if r.submission_id == 3).status == JobStatus("running")
+    lists = [r for r in apiserver.requests if r.method == "GET" and r.path.endswith("/jobs")]
+    assert len(lists) == 2
