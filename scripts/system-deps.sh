@@ -21,6 +21,10 @@ python3 -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
 command -v docker-registry >/dev/null || missing+=(docker-registry)
 # The worker tests run real Celery workers against a private redis-server they start.
 command -v redis-server >/dev/null || missing+=(redis-server)
+# Policy containers: Podman (its Docker API) with runc; debootstrap builds the base image.
+command -v podman >/dev/null || missing+=(podman)
+[ -x /usr/sbin/runc ] || missing+=(runc)
+command -v debootstrap >/dev/null || missing+=(debootstrap)
 command -v openssl >/dev/null || missing+=(openssl)  # signs the test registry's tokens
 
 [ ${#missing[@]} -eq 0 ] && exit 0

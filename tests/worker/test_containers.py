@@ -1,0 +1,437 @@
+"""The docker executor against Podman's Docker API, with real images pulled from a registry."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import random
+import socket
+import stat
+import textwrap
+import time
+from collections.abc import Iterator
+from contextlib import closing
+from pathlib import Path
+
+import pytest
+from docker.errors import ImageNotFound
+from docker.types import Mount
+
+from evaluator.endpoint import PolicyEndpoint
+from evaluator.evaluation import evaluate
+from evaluator.plan import EvaluationPlan, build_plan
+from evaluator.results import EvaluationResult
+from evaluator.sources import LocalDirectory
+from evaluator.suite import load_suite
+from tests.evaluator.conftest import SCRIPTED, episode_records, tiny_plan, with_limits
+from tests.server.registry_fixture import fixture_registry  # noqa: F401 - pytest fixture
+from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
+    ContainerEngine,
+    PolicyImages,
+    fixture_container_engine,
+    fixture_policy_images,
+    policy_containers,
+)
+from worker.containers import (
+    POLICY_UID,
+    SOCKET_MOUNT,
+    ContainerImage,
+    ContainerLimits,
+    ContainerProcess,
+    ExecutorError,
+    attempt_key,
+    container_config,
+    container_endpoint,
+    exit_detail,
+    pinned_reference,
+    remove_leftovers,
+    share_socket,
+)
+
+DIGEST = "sha256:" + "ab" * 32
+LIMITS = ContainerLimits(memory_mib=256, cpus=1.0, pids=64, tmpfs_mib=16)
+GIVE_UP_S = 60  # the longest any misbehaving policy may hold an evaluation here
+
+HEADER = """\
+import os, socket, sys, time
+from manieval_sdk import Policy, serve
+"""
+SLEEPER = HEADER + 'print("sleeping", flush=True)\ntime.sleep(3600)\n'
+
+
+@pytest.fixture(scope="module")
+def attempts() -> Iterator[tuple[int, int]]:
+    """(submission, attempt) pairs no other test or session on this machine uses."""
+    start = random.randrange(10**6, 10**9)
+    return ((n, 1) for n in itertools.count(start))
+
+
+def container_source(
+    image: str,
+    ids: tuple[int, int],
+    container_engine: ContainerEngine,
+    limits: ContainerLimits = LIMITS,
+) -> ContainerImage:
+    submission, attempt = ids
+    return ContainerImage(
+        image,
+        submission=submission,
+        attempt=attempt,
+        engine_url=container_engine.url,
+        limits=limits,
+    )
+
+
+def hostile_plan() -> EvaluationPlan:
+    plan = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"], episodes=2)
+    return with_limits(plan, connect_timeout_s=30, first_call_timeout_s=5, call_timeout_s=2)
+
+
+def evaluate_hostile(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    ids: tuple[int, int],
+    name: str,
+    body: str,
+) -> EvaluationResult:
+    """Evaluate a hostile policy in a container; it must be given up on in bounded time."""
+    image = policy_images.publish(name, HEADER + textwrap.dedent(body))
+    started = time.monotonic()
+    result = evaluate(hostile_plan(), container_source(image, ids, container_engine))
+    assert time.monotonic() - started < GIVE_UP_S, "the evaluator took too long to give up"
+    assert policy_containers(container_engine, submission=ids[0], attempt=ids[1]) == []
+    return result
+
+
+def assert_aborted(result: EvaluationResult, kind: str, *reasons: str) -> None:
+    assert result.status == "aborted"
+    assert result.abort is not None
+    assert result.abort.kind == kind
+    for reason in reasons:
+        assert reason in result.abort.reason
+
+
+# Pure parts: no engine needed.
+
+
+def test_container_config_locks_the_policy_down() -> None:
+    config = container_config(
+        image=f"registry.example/team/policy@{DIGEST}",
+        name="manieval-7-2-abcd",
+        labels={"manieval.role": "policy"},
+        limits=ContainerLimits(memory_mib=512, cpus=1.5, pids=128, tmpfs_mib=32),
+        socket_dir=Path("/tmp/manieval-x"),
+        endpoint=f"unix://{SOCKET_MOUNT}/policy.sock",
+    )
+    assert config["network_mode"] == "none"
+    assert config["read_only"] is True
+    assert config["cap_drop"] == ["ALL"]
+    assert config["security_opt"] == ["no-new-privileges"]
+    assert config["user"] == f"{POLICY_UID}:{POLICY_UID}"
+    assert config["mem_limit"] == config["memswap_limit"] == 512 << 20
+    assert config["nano_cpus"] == 1_500_000_000
+    assert config["pids_limit"] == 128
+    assert config["tmpfs"]["/tmp"] == "size=32m,mode=1777"
+    assert all("size=" in options for options in config["tmpfs"].values())
+    assert config["mounts"] == [Mount(SOCKET_MOUNT, "/tmp/manieval-x", type="bind", read_only=True)]
+    assert "volumes" not in config
+    assert "privileged" not in config
+    assert config["environment"]["MANIEVAL_ENDPOINT"] == f"unix://{SOCKET_MOUNT}/policy.sock"
+    assert {u["Name"] for u in config["ulimits"]} == {"nofile", "nproc"}
+    assert config["log_config"]["Config"] == {"max-size": "1m"}
+
+
+def test_only_images_pinned_by_digest_are_accepted() -> None:
+    assert pinned_reference(f"127.0.0.1:5000/a/b@{DIGEST}") == f"127.0.0.1:5000/a/b@{DIGEST}"
+    for reference in ("a/b:latest", "a/b", f"a/b@sha256:{'ab' * 31}", f"a/b:{DIGEST}"):
+        with pytest.raises(ValueError, match="pinned by digest"):
+            ContainerImage(reference, submission=1, attempt=1)
+
+
+def test_endpoint_is_translated_into_the_socket_mount() -> None:
+    socket_dir = Path("/tmp/manieval-abc")
+    inside = container_endpoint(f"unix://{socket_dir}/policy.sock", socket_dir)
+    assert inside == f"unix://{SOCKET_MOUNT}/policy.sock"
+    with pytest.raises(ExecutorError):
+        container_endpoint("unix:///elsewhere/policy.sock", socket_dir)
+    with pytest.raises(ExecutorError):
+        container_endpoint("tcp://127.0.0.1:5555", socket_dir)
+
+
+def test_exit_detail_names_the_memory_limit() -> None:
+    assert exit_detail(exit_code=0, oom_killed=False, memory_mib=256) is None
+    assert exit_detail(exit_code=3, oom_killed=False, memory_mib=256) == "exit code 3"
+    assert "memory limit of 256 MiB" in str(
+        exit_detail(exit_code=137, oom_killed=True, memory_mib=256)
+    )
+    assert "memory limit of 64 MiB" in str(
+        exit_detail(exit_code=137, oom_killed=False, memory_mib=64)
+    )
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="handing files to another gid needs root")
+def test_socket_is_shared_with_the_policy_group_only() -> None:
+    endpoint = PolicyEndpoint()
+    try:
+        share_socket(endpoint.socket_dir, endpoint.path)
+        directory, sock = endpoint.socket_dir.stat(), endpoint.path.stat()
+        assert (directory.st_uid, directory.st_gid) == (os.geteuid(), POLICY_UID)
+        assert stat.S_IMODE(directory.st_mode) == 0o710
+        assert (sock.st_uid, sock.st_gid) == (os.geteuid(), POLICY_UID)
+        assert stat.S_IMODE(sock.st_mode) == 0o660
+    finally:
+        endpoint.close()
+
+
+# Against the engine.
+
+
+@pytest.mark.sim
+def test_scripted_policy_scores_the_same_in_a_container_as_in_process(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    plan = build_plan(
+        load_suite("maniskill-core"),
+        "dev",
+        tasks=["PickCube-v1", "PushCube-v1"],
+        conditions=["nominal"],
+        episodes=3,
+    )
+    image = policy_images.publish("scripted", (SCRIPTED / "policy.py").read_text())
+    ids = next(attempts)
+    in_container = evaluate(plan, container_source(image, ids, container_engine))
+    in_process = evaluate(plan, LocalDirectory(SCRIPTED))
+    assert in_container.status == "completed", in_container.abort
+    assert in_container.policy == f"image:{image}"
+    assert episode_records(in_container) == episode_records(in_process)
+    assert in_container.score == in_process.score > 0
+    assert policy_containers(container_engine, submission=ids[0], attempt=ids[1]) == []
+
+
+def test_image_is_pulled_from_the_registry_by_digest(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    image = policy_images.publish("sleeper", SLEEPER)
+    with closing(container_engine.client()) as client:
+        try:
+            client.images.remove(client.images.get(image).id, force=True)
+        except ImageNotFound:
+            pass  # never pulled by this reference yet
+        with pytest.raises(ImageNotFound):
+            client.images.get(image)
+        container_source(image, next(attempts), container_engine).pull()
+        assert image in client.images.get(image).attrs["RepoDigests"]
+
+
+@pytest.mark.sim
+def test_policy_that_reaches_for_the_network_gets_nowhere(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    listener = socket.create_server(("0.0.0.0", 0))
+    listener.setblocking(False)
+    port = listener.getsockname()[1]
+    targets = [(_host_address(), port), ("127.0.0.1", port), ("1.1.1.1", 443)]
+    body = f"""
+    for host, port in {targets!r}:
+        try:
+            socket.create_connection((host, port), timeout=3).close()
+            print(f"reached {{host}}:{{port}}", flush=True)
+        except OSError as exc:
+            print(f"cannot reach {{host}}:{{port}}: {{exc}}", flush=True)
+    try:
+        socket.getaddrinfo("deb.debian.org", 80)
+        print("resolved a name", flush=True)
+    except OSError as exc:
+        print(f"no name resolution: {{exc}}", flush=True)
+    sys.exit("this policy needs the network")
+    """
+    with listener:
+        result = evaluate_hostile(container_engine, policy_images, next(attempts), "network", body)
+        with pytest.raises(BlockingIOError):
+            listener.accept()  # nothing got through to the host
+    assert_aborted(result, "policy_crashed", "exited before connecting", "exit code 1")
+    assert result.abort is not None
+    assert "Network is unreachable" in result.abort.log_tail
+    assert "no name resolution" in result.abort.log_tail
+    assert "reached" not in result.abort.log_tail
+
+
+@pytest.mark.sim
+def test_fork_bomb_is_held_by_the_process_limit(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    body = """
+    class ForkBomb(Policy):
+        def act(self, obs):
+            told = False
+            while True:
+                try:
+                    os.fork()
+                except OSError as exc:
+                    if not told:
+                        print(f"fork failed: {exc}", file=sys.stderr, flush=True)
+                        told = True
+                    time.sleep(0.01)
+
+    serve(ForkBomb())
+    """
+    result = evaluate_hostile(container_engine, policy_images, next(attempts), "forkbomb", body)
+    assert_aborted(result, "policy_timeout", "no answer to 'act'")
+    assert result.abort is not None
+    assert "Resource temporarily unavailable" in result.abort.log_tail
+
+
+@pytest.mark.sim
+def test_memory_hog_is_killed_and_the_reason_names_the_limit(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    body = """
+    class Hog(Policy):
+        def act(self, obs):
+            hoard = []
+            while True:
+                hoard.append(b"\\1" * (8 << 20))
+
+    serve(Hog())
+    """
+    result = evaluate_hostile(container_engine, policy_images, next(attempts), "memoryhog", body)
+    assert_aborted(
+        result, "policy_crashed", "closed the connection during 'act'", "memory limit of 256 MiB"
+    )
+
+
+@pytest.mark.sim
+def test_disk_filler_finds_no_room_and_its_crash_is_reported(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    body = f"""
+    class Filler(Policy):
+        def act(self, obs):
+            for path in ("/opt/policy/fill", "{SOCKET_MOUNT}/fill", "/var/tmp/fill", "/tmp/fill"):
+                try:
+                    with open(path, "wb") as out:
+                        while True:
+                            out.write(bytes(1 << 20))
+                except OSError as exc:
+                    print(f"cannot fill {{path}}: {{exc}}", file=sys.stderr, flush=True)
+            os._exit(5)
+
+    serve(Filler())
+    """
+    result = evaluate_hostile(container_engine, policy_images, next(attempts), "diskfiller", body)
+    assert_aborted(result, "policy_crashed", "closed the connection during 'act'", "exit code 5")
+    assert result.abort is not None
+    tail = result.abort.log_tail
+    assert "cannot fill /opt/policy/fill: [Errno 30] Read-only file system" in tail
+    assert f"cannot fill {SOCKET_MOUNT}/fill" in tail
+    assert "cannot fill /var/tmp/fill: [Errno 28] No space left on device" in tail
+    assert "cannot fill /tmp/fill: [Errno 28] No space left on device" in tail
+
+
+@pytest.mark.sim
+def test_cancelled_evaluation_leaves_no_container(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    image = policy_images.publish("scripted", (SCRIPTED / "policy.py").read_text())
+    ids = next(attempts)
+    done: list[object] = []
+    result = evaluate(
+        tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"], episodes=3),
+        container_source(image, ids, container_engine),
+        on_episode=lambda _run, episode: done.append(episode),
+        should_stop=lambda: bool(done),
+    )
+    failures = [e.failure for e in result.conditions[0].tasks[0].episodes]
+    assert failures == [None, "not_run", "not_run"]
+    assert policy_containers(container_engine, submission=ids[0], attempt=ids[1]) == []
+
+
+def test_stop_removes_the_container_and_keeps_its_output(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    ids = next(attempts)
+    source = container_source(policy_images.publish("sleeper", SLEEPER), ids, container_engine)
+    endpoint = PolicyEndpoint()
+    process = source.launch(endpoint=endpoint.address, socket_dir=endpoint.socket_dir)
+    try:
+        _wait_for_output(process, "sleeping")
+        assert process.alive()
+        assert process.exit_code() is None
+    finally:
+        endpoint.close()
+        process.stop()
+    process.stop()  # idempotent
+    assert not process.alive()
+    assert process.exit_detail() is None  # we killed it: not the policy's doing
+    assert "sleeping" in process.log_tail()
+    assert policy_containers(container_engine, submission=ids[0], attempt=ids[1]) == []
+
+
+def test_reconciler_removes_containers_a_crashed_worker_left(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    image = policy_images.publish("sleeper", SLEEPER)
+    crashed, live = next(attempts), next(attempts)
+    endpoints = [PolicyEndpoint(), PolicyEndpoint()]
+    processes = [
+        container_source(image, ids, container_engine).launch(
+            endpoint=endpoint.address, socket_dir=endpoint.socket_dir
+        )
+        for ids, endpoint in zip((crashed, live), endpoints, strict=True)
+    ]
+    try:
+        with closing(container_engine.client()) as client:
+            # Every other attempt on this machine counts as live: this test removes only its own.
+            keep = {
+                attempt_key(c.labels["manieval.submission"], c.labels["manieval.attempt"])
+                for c in client.containers.list(all=True, filters={"label": "manieval.role"})
+            } - {attempt_key(*crashed)}
+            assert remove_leftovers(client, keep=keep) == []  # too young to judge
+            removed = remove_leftovers(client, keep=keep, grace_s=0)
+            assert removed == [processes[0].name]
+            assert (
+                policy_containers(container_engine, submission=crashed[0], attempt=crashed[1]) == []
+            )
+            assert (
+                len(policy_containers(container_engine, submission=live[0], attempt=live[1])) == 1
+            )
+    finally:
+        for endpoint, process in zip(endpoints, processes, strict=True):
+            endpoint.close()
+            process.stop()
+
+
+def _wait_for_output(process: ContainerProcess, text: str) -> None:
+    deadline = time.monotonic() + 30
+    while text not in process.log_tail():
+        assert time.monotonic() < deadline, process.log_tail()
+        time.sleep(0.1)
+
+
+def _host_address() -> str:
+    """This machine's address on its default route (a UDP connect sends nothing)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.connect(("192.0.2.1", 9))
+            address: str = probe.getsockname()[0]
+        except OSError:
+            address = "127.0.0.1"
+    return address

@@ -1,0 +1,376 @@
+"""The docker executor: a policy image run as a locked-down container next to the evaluator.
+
+Talks to any Docker-API engine (Docker, or Podman's API service) through the `docker` SDK. The
+evaluator stays in the trusted worker; the policy container gets no network, a read-only root
+filesystem, small tmpfs mounts, no capabilities, no new privileges, a non-root user, memory,
+CPU and process limits, and one read-only mount: the directory holding the evaluator's socket.
+Containers carry labels naming their submission and attempt, and are always removed: by
+`ContainerProcess.stop()` on every way out of an evaluation, and by `remove_leftovers` (the
+reconciler) after a worker crash.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import secrets
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from docker.client import DockerClient
+from docker.errors import DockerException, ImageNotFound, NotFound
+from docker.models.containers import Container
+from docker.types import LogConfig, Mount, Ulimit
+
+from evaluator.sources import LOG_TAIL_BYTES
+
+log = logging.getLogger(__name__)
+
+DEFAULT_ENGINE_URL = "unix:///run/manieval/podman.sock"  # docker/podman-setup.sh serves it
+POLICY_UID = 65532  # the `policy` user of docker/policy-base; never a uid of the worker host
+SOCKET_MOUNT = "/run/manieval"  # where the socket directory appears inside the container
+LABEL_SUBMISSION = "manieval.submission"
+LABEL_ATTEMPT = "manieval.attempt"
+LABEL_ROLE = "manieval.role"
+LABEL_CREATED = "manieval.created"
+ROLE_POLICY = "policy"
+LOG_SIZE_MAX = "1m"  # what the engine keeps of the policy's output on its disk
+ENGINE_TIMEOUT_S = 60
+STOP_GRACE_S = 1.0  # a policy told to close normally exits well within this
+POLL_INTERVAL_S = 0.25
+SIGKILL_EXIT = 137
+MIB = 1 << 20
+_PINNED = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._:/-]*@sha256:[0-9a-f]{64}$")
+
+
+class ExecutorError(RuntimeError):
+    """The engine could not pull or start the policy: our side, not the policy's."""
+
+
+@dataclass(frozen=True)
+class ContainerLimits:
+    """What one policy container may use."""
+
+    memory_mib: int = 2048
+    cpus: float = 1.0
+    pids: int = 256
+    tmpfs_mib: int = 64
+    open_files: int = 1024
+    # RLIMIT_NPROC counts every process of POLICY_UID on the host, across containers; the pids
+    # limit is what bounds one container, this only has to stay under the engine's own limit.
+    user_processes: int = 8192
+
+
+def pinned_reference(image: str) -> str:
+    """`image` if it names exactly one manifest (`repo@sha256:<hex>`); ValueError otherwise."""
+    if not _PINNED.fullmatch(image):
+        raise ValueError(f"the docker executor runs images pinned by digest only, not {image!r}")
+    return image
+
+
+def attempt_key(submission: int | str, attempt: int | str) -> str:
+    """How `remove_leftovers` names an attempt whose containers must be kept."""
+    return f"{submission}/{attempt}"
+
+
+def policy_labels(*, submission: int, attempt: int, created: float) -> dict[str, str]:
+    """Labels that tie a container to its attempt, for the reconciler."""
+    return {
+        LABEL_SUBMISSION: str(submission),
+        LABEL_ATTEMPT: str(attempt),
+        LABEL_ROLE: ROLE_POLICY,
+        LABEL_CREATED: str(int(created)),
+    }
+
+
+def container_name(*, submission: int, attempt: int, token: str) -> str:
+    """`manieval-<submission>-<attempt>-<token>`: one attempt may run several policy shards."""
+    return f"manieval-{submission}-{attempt}-{token}"
+
+
+def container_endpoint(endpoint: str, socket_dir: Path) -> str:
+    """The evaluator's `unix://` endpoint as the policy sees it through the socket mount."""
+    prefix = "unix://"
+    path = Path(endpoint.removeprefix(prefix))
+    if not endpoint.startswith(prefix) or path.parent != socket_dir:
+        raise ExecutorError(f"the docker executor needs a unix socket in {socket_dir}: {endpoint}")
+    return f"{prefix}{SOCKET_MOUNT}/{path.name}"
+
+
+def container_config(
+    *,
+    image: str,
+    name: str,
+    labels: Mapping[str, str],
+    limits: ContainerLimits,
+    socket_dir: Path,
+    endpoint: str,
+) -> dict[str, Any]:
+    """Keyword arguments for `containers.create`: the policy's sandbox (pure, no I/O)."""
+    memory = limits.memory_mib * MIB
+    return {
+        "image": image,
+        "name": name,
+        "labels": dict(labels),
+        "environment": {"MANIEVAL_ENDPOINT": endpoint, "HOME": "/tmp", "PYTHONUNBUFFERED": "1"},
+        "user": f"{POLICY_UID}:{POLICY_UID}",
+        "network_mode": "none",
+        "read_only": True,
+        # Podman mounts unbounded tmpfs on /run and /var/tmp of read-only containers: bound them.
+        "tmpfs": {
+            "/tmp": f"size={limits.tmpfs_mib}m,mode=1777",
+            "/var/tmp": "size=1m,mode=1777",
+            "/run": "size=1m,mode=755",
+        },
+        "shm_size": limits.tmpfs_mib * MIB,
+        "mounts": [Mount(SOCKET_MOUNT, str(socket_dir), type="bind", read_only=True)],
+        "cap_drop": ["ALL"],
+        "security_opt": ["no-new-privileges"],
+        "mem_limit": memory,
+        "memswap_limit": memory,
+        "nano_cpus": int(limits.cpus * 1e9),
+        "pids_limit": limits.pids,
+        "ulimits": [
+            Ulimit(name="nofile", soft=limits.open_files, hard=limits.open_files),
+            Ulimit(name="nproc", soft=limits.user_processes, hard=limits.user_processes),
+        ],
+        # As PID 1, python ignores SIGTERM: any stop is a kill, at once.
+        "stop_signal": "SIGKILL",
+        "log_config": LogConfig(type="json-file", config={"max-size": LOG_SIZE_MAX}),
+        "stdin_open": False,
+        "tty": False,
+    }
+
+
+def share_socket(socket_dir: Path, socket_path: Path, *, gid: int = POLICY_UID) -> None:
+    """Let the policy's group, and no one else but us, reach the socket: 0710 dir, 0660 socket."""
+    try:
+        os.chown(socket_dir, -1, gid)
+        os.chown(socket_path, -1, gid)
+    except PermissionError:
+        # Not root: the container's uid is not ours to hand files to, so open them to all.
+        log.warning("cannot give %s to gid %d: opening it to every local user", socket_dir, gid)
+        os.chmod(socket_dir, 0o711)
+        os.chmod(socket_path, 0o666)
+        return
+    os.chmod(socket_dir, 0o710)
+    os.chmod(socket_path, 0o660)
+
+
+def exit_detail(*, exit_code: int, oom_killed: bool, memory_mib: int) -> str | None:
+    """How a container that ended on its own ended, in words for the submission's owner."""
+    if oom_killed:
+        return f"exit code {exit_code}: it exceeded its memory limit of {memory_mib} MiB"
+    if exit_code == SIGKILL_EXIT:
+        # Podman 4 on cgroup v1 never sets OOMKilled; nothing but the kernel kills PID 1 here.
+        return (
+            f"exit code {exit_code}: killed, most likely for exceeding its memory limit of "
+            f"{memory_mib} MiB"
+        )
+    return None if exit_code == 0 else f"exit code {exit_code}"
+
+
+_api_versions: dict[str, str] = {}  # engine URL -> API version it speaks
+
+
+def engine(url: str) -> DockerClient:
+    """A client of the Docker-API engine at `url`."""
+    # Asking for the version takes Podman 4 a second: once per engine and process is enough.
+    client = DockerClient(base_url=url, version=_api_versions.get(url), timeout=ENGINE_TIMEOUT_S)
+    _api_versions[url] = client.api.api_version
+    return client
+
+
+def ensure_image(client: DockerClient, image: str) -> None:
+    """Pull `image` unless the engine has it (a digest names immutable content)."""
+    try:
+        client.images.get(image)
+    except ImageNotFound:
+        log.info("pulling %s", image)
+        client.images.pull(image)
+
+
+@dataclass(frozen=True)
+class ContainerImage:
+    """A policy image pinned by digest, run by the engine at `engine_url` for one attempt."""
+
+    image: str
+    submission: int
+    attempt: int
+    engine_url: str = DEFAULT_ENGINE_URL
+    limits: ContainerLimits = field(default_factory=ContainerLimits)
+
+    def __post_init__(self) -> None:
+        pinned_reference(self.image)
+
+    def describe(self) -> str:
+        """How the result document names this policy."""
+        return f"image:{self.image}"
+
+    def pull(self) -> None:
+        """Fetch the image ahead of the evaluation, so its time is not the policy's."""
+        client = engine(self.engine_url)
+        try:
+            ensure_image(client, self.image)
+        except DockerException as exc:
+            raise ExecutorError(f"cannot pull {self.image}: {exc}") from exc
+        finally:
+            client.close()
+
+    def launch(self, *, endpoint: str, socket_dir: Path) -> ContainerProcess:
+        """Start the policy container; it connects to `endpoint` through the socket mount."""
+        inside = container_endpoint(endpoint, socket_dir)
+        share_socket(socket_dir, socket_dir / Path(inside).name)
+        config = container_config(
+            image=self.image,
+            name=container_name(
+                submission=self.submission, attempt=self.attempt, token=secrets.token_hex(4)
+            ),
+            labels=policy_labels(
+                submission=self.submission, attempt=self.attempt, created=time.time()
+            ),
+            limits=self.limits,
+            socket_dir=socket_dir,
+            endpoint=inside,
+        )
+        client = engine(self.engine_url)
+        try:
+            ensure_image(client, self.image)
+            container = client.containers.create(**config)
+        except DockerException as exc:
+            client.close()
+            raise ExecutorError(f"cannot create a container of {self.image}: {exc}") from exc
+        try:
+            container.start()
+        except DockerException as exc:
+            _remove(container)
+            client.close()
+            raise ExecutorError(f"cannot start {config['name']}: {exc}") from exc
+        return ContainerProcess(client, container, memory_mib=self.limits.memory_mib)
+
+
+class ContainerProcess:
+    """A running policy container: its state, output and removal through the engine's API."""
+
+    def __init__(self, client: DockerClient, container: Container, *, memory_mib: int) -> None:
+        self._client = client
+        self._container = container
+        self.name = str(container.name)
+        self._memory_mib = memory_mib
+        self._lock = threading.Lock()
+        self._polled = -float("inf")
+        self._state: dict[str, Any] | None = None  # the engine's State once it stopped running
+        self._detail: str | None = None
+        self._tail: str | None = None
+        self._stopped = False
+
+    def alive(self) -> bool:
+        """Whether the container still runs (asks the engine at most every POLL_INTERVAL_S)."""
+        return self._ended(max_age=POLL_INTERVAL_S) is None
+
+    def exit_code(self) -> int | None:
+        """The container's exit code, None while it runs."""
+        state = self._ended(max_age=POLL_INTERVAL_S)
+        code = None if state is None else state.get("ExitCode")
+        return None if code is None else int(code)
+
+    def exit_detail(self) -> str | None:
+        """After stop(): how it ended if it ended on its own (memory limit, exit code)."""
+        return self._detail
+
+    def log_tail(self) -> str:
+        """The last bytes of the policy's stdout and stderr (kept after the container is gone)."""
+        return self._tail if self._tail is not None else self._read_logs()
+
+    def stop(self) -> None:
+        """Give the policy a moment to exit, keep its log tail, then kill and remove it."""
+        if self._stopped:
+            return
+        self._stopped = True
+        deadline = time.monotonic() + STOP_GRACE_S
+        state = self._ended(max_age=0)
+        while state is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+            state = self._ended(max_age=0)
+        if state is not None:
+            self._detail = exit_detail(
+                exit_code=int(state.get("ExitCode", 0)),
+                oom_killed=bool(state.get("OOMKilled")),
+                memory_mib=self._memory_mib,
+            )
+        self._tail = self._read_logs()
+        _remove(self._container)
+        with self._lock:
+            if self._state is None:
+                self._state = {}  # killed by us: no exit of the policy's own
+        self._client.close()
+
+    def _ended(self, *, max_age: float) -> dict[str, Any] | None:
+        # Inspecting, not the engine's blocking wait: Podman 4 busy-polls for every waiter.
+        with self._lock:
+            if self._state is not None or time.monotonic() - self._polled < max_age:
+                return self._state
+            self._polled = time.monotonic()
+            try:
+                self._container.reload()
+            except NotFound:
+                self._state = {}  # removed behind our back: not running, exit unknown
+            except DockerException:
+                pass  # the engine hiccuped: ask again later
+            else:
+                state = self._container.attrs.get("State", {})
+                self._state = None if state.get("Running", False) else state
+            return self._state
+
+    def _read_logs(self) -> str:
+        try:
+            data: bytes = self._container.logs(stdout=True, stderr=True)
+        except DockerException as exc:
+            return f"[the policy's output could not be read: {exc}]"
+        if len(data) <= LOG_TAIL_BYTES:
+            return data.decode("utf-8", errors="replace")
+        dropped = len(data) - LOG_TAIL_BYTES
+        text = data[-LOG_TAIL_BYTES:].decode("utf-8", errors="replace")
+        return f"[... {dropped} earlier bytes dropped]\n{text}"
+
+
+def _remove(container: Container) -> None:
+    try:
+        container.remove(force=True, v=True)
+    except NotFound:
+        pass
+    except DockerException:
+        # The reconciler removes it later by its labels.
+        log.exception("could not remove policy container %s", container.name)
+
+
+def remove_leftovers(client: DockerClient, *, keep: set[str], grace_s: float = 60.0) -> list[str]:
+    """Remove policy containers of attempts not in `keep` (see `attempt_key`); their names.
+
+    Containers younger than `grace_s` are spared: their attempt may have started after the
+    caller read which attempts are live.
+    """
+    removed = []
+    now = time.time()
+    for container in client.containers.list(
+        all=True, filters={"label": f"{LABEL_ROLE}={ROLE_POLICY}"}
+    ):
+        labels = container.labels
+        key = attempt_key(labels.get(LABEL_SUBMISSION, "?"), labels.get(LABEL_ATTEMPT, "?"))
+        if key in keep or now - _created(labels) < grace_s:
+            continue
+        _remove(container)
+        removed.append(str(container.name))
+    return removed
+
+
+def _created(labels: Mapping[str, str]) -> float:
+    try:
+        return float(labels.get(LABEL_CREATED, ""))
+    except ValueError:
+        return 0.0  # not ours to date: old enough
