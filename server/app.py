@@ -154,7 +154,7 @@ def create_app(
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         sweeper = threading.Thread(
             target=_sweep,
-            args=(dispatcher, stop, sessions, inline),
+            args=(dispatcher, stop, sessions, inline, settings),
             name="manieval-sweep",
             daemon=True,
         )
@@ -213,18 +213,21 @@ def _sweep(
     stop: threading.Event,
     sessions: sessionmaker[Session],
     inline: InlineQueue | None,
+    settings: Settings,
 ) -> None:
     """Send what the outbox still holds; in the embedded mode also reconcile (with Celery,
     beat does that)."""
     from worker.reconcile import reconcile
+    from worker.run import container_cleaners
 
+    cleaners = container_cleaners(settings)
     passes = 0
     while not stop.wait(SWEEP_INTERVAL_S):
         dispatcher.dispatch()
         passes += 1
         if inline is not None and passes % RECONCILE_EVERY == 0:
             try:
-                reconcile(sessions, inline)
+                reconcile(sessions, inline, cleaners=cleaners)
             except Exception:
                 log.exception("reconciling failed; the next pass will try again")
 

@@ -74,6 +74,13 @@ class Settings(BaseSettings):
     broker_url: str = "redis://127.0.0.1:6379/0"
     celery_queue: str = "manieval"
 
+    docker_engine_url: str | None = None
+    """Docker-API engine that runs policy images (Docker, or Podman's API service, e.g.
+    ``unix:///run/manieval/podman.sock``); unset: image submissions end ``error``."""
+
+    policy_memory_mib: int = Field(default=2048, ge=64)
+    policy_cpus: float = Field(default=1.0, gt=0)
+
     inline_workers: int = Field(default=1, ge=1, le=64)
     """Evaluations the embedded server runs at once."""
 

@@ -69,8 +69,11 @@ def _run_next(submission_id: int = 0, attempt: int = 0) -> Any:
 
 def _reconcile() -> Any:
     from worker.reconcile import reconcile
+    from worker.run import container_cleaners
 
-    report = reconcile(_sessions(), CeleryQueue(_settings()))
+    report = reconcile(
+        _sessions(), CeleryQueue(_settings()), cleaners=container_cleaners(_settings())
+    )
     return {"timed_out": report.timed_out, "lost": report.lost, "woken": report.woken}
 
 

@@ -27,6 +27,7 @@ from server.ingest import report_final, report_progress, report_state
 from server.models import State, Submission, utcnow
 from server.settings import Settings
 from server.submissions import LOCAL_PREFIX
+from worker.reconcile import Cleaner
 from worker.scheduling import claim_next
 
 log = logging.getLogger(__name__)
@@ -46,7 +47,10 @@ def local_policies() -> dict[str, Path]:
     return {p.name: p for p in sorted(EXAMPLES_DIR.iterdir()) if (p / "policy.py").is_file()}
 
 
-def policy_source(pinned: str, settings: Settings) -> PolicySource:
+def policy_source(
+    pinned: str, settings: Settings, *, submission_id: int, attempt: int
+) -> PolicySource:
+    """Where the attempt's policy comes from: a bundled directory (demo) or a pinned image."""
     if pinned.startswith(LOCAL_PREFIX):
         if not settings.allow_local_policies:
             raise NotRunnable("local policies are disabled on this server")
@@ -55,7 +59,33 @@ def policy_source(pinned: str, settings: Settings) -> PolicySource:
         if directory is None:
             raise NotRunnable(f"no bundled policy {name!r}")
         return LocalDirectory(directory)
-    raise NotRunnable("no container executor is configured on this worker")
+    if settings.docker_engine_url is None:
+        raise NotRunnable("no container engine is configured (MANIEVAL_DOCKER_ENGINE_URL)")
+    from worker.containers import ContainerImage, ContainerLimits
+
+    limits = ContainerLimits(memory_mib=settings.policy_memory_mib, cpus=settings.policy_cpus)
+    return ContainerImage(
+        pinned,
+        submission=submission_id,
+        attempt=attempt,
+        engine_url=settings.docker_engine_url,
+        limits=limits,
+    )
+
+
+def container_cleaners(settings: Settings) -> list[Cleaner]:
+    """The reconciler's view of this worker's containers: remove those of no active attempt."""
+    url = settings.docker_engine_url
+    if url is None:
+        return []
+
+    def clean(active: set[tuple[int, int]]) -> list[str]:
+        from worker.containers import attempt_key, engine, remove_leftovers
+
+        keep = {attempt_key(sid, attempt) for sid, attempt in active}
+        return remove_leftovers(engine(url), keep=keep)
+
+    return [clean]
 
 
 def run_next(
@@ -88,7 +118,10 @@ def execute(
         phase = submission.phase.name
         pinned = submission.pinned_image
     try:
-        source = policy_source(pinned, settings)
+        source = policy_source(pinned, settings, submission_id=submission_id, attempt=attempt)
+        pull = getattr(source, "pull", None)
+        if pull is not None:
+            pull()  # before `running`: pulling time is not the policy's budget
         secret = seed_secret_for(settings.secret("seed_secret"), suite.name)
         plan = build_plan(suite, phase, secret=secret)
     except Exception as exc:  # our configuration: error, with the reason

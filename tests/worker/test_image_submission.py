@@ -1,0 +1,78 @@
+"""The whole path of an image submission: API, registry pinning, worker, docker executor."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from server.app import create_app
+from server.challenges import ChallengeOptions, load_challenge
+from server.db import make_engine, session_factory, upgrade
+from server.settings import Settings
+from tests.evaluator.conftest import SCRIPTED
+from tests.server.conftest import PASSWORD, SUITE, token_for
+from tests.server.registry_fixture import LocalRegistry, fixture_registry  # noqa: F401
+from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
+    ContainerEngine,
+    PolicyImages,
+    fixture_container_engine,
+    fixture_policy_images,
+    policy_containers,
+)
+
+pytestmark = pytest.mark.sim
+API = "/api/v1"
+
+
+@pytest.fixture
+def service(
+    tmp_path: Path, registry: LocalRegistry, container_engine: ContainerEngine
+) -> Iterator[TestClient]:
+    settings = Settings(
+        dev_mode=True,
+        data_dir=tmp_path,
+        cookie_secure=False,
+        allowed_registries=[registry.domain],
+        insecure_registries=[registry.domain],
+        docker_engine_url=container_engine.url,
+        policy_memory_mib=512,
+    )
+    upgrade(settings.resolved_database_url)
+    sessions = session_factory(make_engine(settings.resolved_database_url))
+    with sessions.begin() as db:
+        load_challenge(db, SUITE, ChallengeOptions(), seed_secret=settings.secret("seed_secret"))
+    with TestClient(create_app(settings, sessions=sessions)) as client:
+        client.post(
+            f"{API}/users",
+            json={"username": "alice", "email": "a@example.org", "password": PASSWORD},
+        )
+        client.headers.update(token_for(client, "alice"))
+        yield client
+
+
+def test_an_image_submission_runs_in_a_container_and_leaves_nothing(
+    service: TestClient, policy_images: PolicyImages, container_engine: ContainerEngine
+) -> None:
+    pinned = policy_images.publish("scripted", (SCRIPTED / "policy.py").read_text())
+    tag = pinned.split("@")[0] + ":latest"
+    r = service.post(f"{API}/submissions", json={"challenge": "server-tiny", "image": tag})
+    assert r.status_code == 202, r.text
+    assert r.json()["pinned_image"] == pinned
+    sid = r.json()["id"]
+    deadline = time.monotonic() + 240
+    while (body := service.get(f"{API}/submissions/{sid}").json())["state"] not in (
+        "succeeded",
+        "failed",
+        "error",
+        "cancelled",
+        "timed_out",
+    ):
+        assert time.monotonic() < deadline, body
+        time.sleep(0.3)
+    assert body["state"] == "succeeded", body
+    assert {t["condition"] for t in body["tasks"]} == {"nominal", "obs_noise"}
+    assert policy_containers(container_engine, submission=sid, attempt=1) == []
