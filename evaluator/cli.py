@@ -14,7 +14,7 @@ from rich.table import Table
 from evaluator.evaluation import evaluate as run_evaluation
 from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import EpisodeResult, EvaluationResult
-from evaluator.sources import LocalDirectory, PolicySourceError
+from evaluator.sources import LocalDirectory, PolicySource, PolicySourceError
 from evaluator.suite import SuiteError, load_suite
 
 SECRET_ENV = "MANIEVAL_SEED_SECRET"
@@ -22,7 +22,23 @@ console = Console(stderr=True, soft_wrap=True)  # error messages stay whole for 
 
 
 def evaluate(
-    policy: Annotated[Path, typer.Option(help="Policy directory containing policy.py.")],
+    policy: Annotated[
+        Path | None, typer.Option(help="Policy directory containing policy.py.")
+    ] = None,
+    image: Annotated[
+        str | None,
+        typer.Option(
+            help="Policy container image (a local tag or repo@sha256:...), run exactly as a "
+            "submission is: no network, read-only, limits."
+        ),
+    ] = None,
+    engine: Annotated[
+        str | None,
+        typer.Option(
+            envvar="MANIEVAL_DOCKER_ENGINE_URL",
+            help="Docker-API engine for --image [default: unix:///run/manieval/podman.sock].",
+        ),
+    ] = None,
     suite: Annotated[str, typer.Option(help="Suite name (bundled) or YAML path.")] = (
         "maniskill-core"
     ),
@@ -57,8 +73,8 @@ def evaluate(
             secret=os.environ.get(SECRET_ENV, "").encode() or None,
             record_video=video is not None,
         )
-        source = LocalDirectory(policy)
-    except (SuiteError, PolicySourceError) as exc:
+        source = _source(policy, image, engine)
+    except (SuiteError, PolicySourceError, ValueError) as exc:
         console.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(2) from None
     result = _run_with_progress(plan, source, workers=workers, video=video)
@@ -73,6 +89,32 @@ def evaluate(
         raise typer.Exit(1)
 
 
+def _source(policy: Path | None, image: str | None, engine: str | None) -> PolicySource:
+    if (policy is None) == (image is None):
+        raise PolicySourceError("give exactly one of --policy DIR and --image REF")
+    if policy is not None:
+        return LocalDirectory(policy)
+    assert image is not None
+    # The worker's docker executor, so that a participant tests the exact submission path.
+    from worker.containers import DEFAULT_ENGINE_URL, ContainerImage, ExecutorError, pin_local
+    from worker.containers import engine as connect
+
+    url = engine or DEFAULT_ENGINE_URL
+    try:
+        client = connect(url)
+        pinned = pin_local(client, image)
+        client.close()
+        source = ContainerImage(pinned, submission=0, attempt=0, engine_url=url)
+        source.pull()
+    except ExecutorError as exc:
+        raise PolicySourceError(str(exc)) from None
+    except Exception as exc:  # the engine is unreachable or refused
+        raise PolicySourceError(f"cannot use the container engine at {url}: {exc}") from None
+    if pinned != image:
+        console.print(f"{image} pinned as {pinned}")
+    return source
+
+
 def _split(values: list[str] | None) -> list[str] | None:
     if not values:
         return None
@@ -80,7 +122,7 @@ def _split(values: list[str] | None) -> list[str] | None:
 
 
 def _run_with_progress(
-    plan: EvaluationPlan, source: LocalDirectory, *, workers: int, video: Path | None
+    plan: EvaluationPlan, source: PolicySource, *, workers: int, video: Path | None
 ) -> EvaluationResult:
     columns = (
         TextColumn("{task.description}"),

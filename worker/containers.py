@@ -45,7 +45,9 @@ STOP_GRACE_S = 1.0  # a policy told to close normally exits well within this
 POLL_INTERVAL_S = 0.25
 SIGKILL_EXIT = 137
 MIB = 1 << 20
-_PINNED = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._:/-]*@sha256:[0-9a-f]{64}$")
+# repo@sha256:<digest> (what the server pins), or a bare image ID (what `manieval evaluate
+# --image` pins a local image to): both name immutable content.
+_PINNED = re.compile(r"^(?:[A-Za-z0-9][A-Za-z0-9._:/-]*@)?sha256:[0-9a-f]{64}$")
 
 
 class ExecutorError(RuntimeError):
@@ -71,6 +73,19 @@ def pinned_reference(image: str) -> str:
     if not _PINNED.fullmatch(image):
         raise ValueError(f"the docker executor runs images pinned by digest only, not {image!r}")
     return image
+
+
+def pin_local(client: DockerClient, image: str) -> str:
+    """Pin a reference the engine knows (a local tag, say) to what it names right now: its
+    registry digest when it has one, else its image ID."""
+    if _PINNED.fullmatch(image):
+        return image
+    try:
+        found = client.images.get(image)
+    except ImageNotFound:
+        raise ExecutorError(f"the engine has no image {image!r}; build or pull it first") from None
+    digests = [d for d in found.attrs.get("RepoDigests") or [] if _PINNED.fullmatch(d)]
+    return str(digests[0] if digests else found.id)
 
 
 def attempt_key(submission: int | str, attempt: int | str) -> str:
