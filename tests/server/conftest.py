@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from server import accounts
 from server.app import create_app, image_resolver
 from server.challenges import ChallengeOptions, load_challenge
-from server.db import make_engine, upgrade
+from server.db import make_engine, session_factory, upgrade
 from server.images import ImageReference, ResolvedImage
 from server.models import Base, Challenge, User
 from server.ratelimit import MemoryRateLimiter
@@ -124,6 +124,29 @@ def make_challenge(db: Session, **options: object) -> Challenge:
     )
     db.commit()
     return challenge
+
+
+def embedded_database(settings: Settings, **options: object) -> sessionmaker[Session]:
+    """A migrated database for `settings` with two challenges: `server-tiny`, and
+    `server-long` (200 episodes of 100 steps: long enough to cancel or kill a run mid-way)."""
+    upgrade(settings.resolved_database_url)
+    sessions = session_factory(make_engine(settings.resolved_database_url))
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    long_suite = settings.data_dir / "server-long.yaml"
+    long_suite.write_text(
+        SUITE.read_text()
+        .replace("name: server-tiny", "name: server-long")
+        .replace("max_episode_steps: 12, episodes: 2", "max_episode_steps: 100, episodes: 200")
+    )
+    with sessions.begin() as db:
+        for suite in (SUITE, long_suite):
+            load_challenge(
+                db,
+                suite,
+                ChallengeOptions(**options),  # type: ignore[arg-type]
+                seed_secret=settings.secret("seed_secret"),
+            )
+    return sessions
 
 
 # The app ---------------------------------------------------------------------------------------

@@ -10,10 +10,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app import create_app
-from server.challenges import ChallengeOptions, load_challenge
-from server.db import make_engine, session_factory, upgrade
 from server.settings import Settings
-from tests.server.conftest import PASSWORD, SUITE, token_for
+from tests.server.conftest import PASSWORD, embedded_database, token_for
 
 API = "/api/v1"
 pytestmark = pytest.mark.sim
@@ -24,22 +22,7 @@ def embedded(tmp_path: Path) -> Iterator[TestClient]:
     settings = Settings(
         dev_mode=True, data_dir=tmp_path, cookie_secure=False, allow_local_policies=True
     )
-    upgrade(settings.resolved_database_url)
-    sessions = session_factory(make_engine(settings.resolved_database_url))
-    long_suite = tmp_path / "server-long.yaml"  # long enough that a cancel lands mid-run
-    long_suite.write_text(
-        SUITE.read_text()
-        .replace("name: server-tiny", "name: server-long")
-        .replace("max_episode_steps: 12, episodes: 2", "max_episode_steps: 100, episodes: 200")
-    )
-    with sessions.begin() as db:
-        for suite in (SUITE, long_suite):
-            load_challenge(
-                db,
-                suite,
-                ChallengeOptions(quota_concurrent=3),
-                seed_secret=settings.secret("seed_secret"),
-            )
+    sessions = embedded_database(settings, quota_concurrent=3)
     with TestClient(create_app(settings, sessions=sessions)) as client:
         r = client.post(
             f"{API}/users",

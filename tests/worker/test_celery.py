@@ -19,11 +19,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server.app import create_app
-from server.challenges import ChallengeOptions, load_challenge
-from server.db import make_engine, session_factory, upgrade
 from server.models import State, Submission, Transition, utcnow
 from server.settings import Settings
-from tests.server.conftest import PASSWORD, SUITE, token_for
+from tests.server.conftest import PASSWORD, embedded_database, token_for
 from worker.queue import CeleryQueue
 from worker.reconcile import reconcile
 
@@ -150,22 +148,7 @@ def api(env: dict[str, str], monkeypatch: pytest.MonkeyPatch) -> Iterator[TestCl
         if key.startswith("MANIEVAL_"):
             monkeypatch.setenv(key, value)
     settings = Settings()
-    upgrade(settings.resolved_database_url)
-    sessions = session_factory(make_engine(settings.resolved_database_url))
-    long_suite = Path(env["MANIEVAL_DATA_DIR"]) / "server-long.yaml"
-    long_suite.write_text(
-        SUITE.read_text()
-        .replace("name: server-tiny", "name: server-long")
-        .replace("max_episode_steps: 12, episodes: 2", "max_episode_steps: 100, episodes: 200")
-    )
-    with sessions.begin() as db:
-        for suite in (SUITE, long_suite):
-            load_challenge(
-                db,
-                suite,
-                ChallengeOptions(quota_concurrent=5, quota_per_day=50),
-                seed_secret=settings.secret("seed_secret"),
-            )
+    sessions = embedded_database(settings, quota_concurrent=5, quota_per_day=50)
     app = create_app(settings, sessions=sessions, background=False)
     app.state.sessions = sessions
     with TestClient(app) as client:
