@@ -21,6 +21,7 @@ import os
 import shutil
 import subprocess
 import time
+import uuid
 from collections.abc import Iterator
 from contextlib import closing
 from dataclasses import dataclass, field
@@ -140,19 +141,26 @@ class PolicyImages:
     registry: LocalRegistry
     work: Path
     published: dict[str, str] = field(default_factory=dict)
+    # Tags and image IDs of their own: sessions running at once (a developer's and CI's) on one
+    # image store must never untag or delete each other's images.
+    session: str = field(default_factory=lambda: uuid.uuid4().hex[:8])
+
+    def local_tag(self, name: str) -> str:
+        return f"localhost/manieval-test/{name}:{self.session}"
 
     def publish(self, name: str, policy_source: str) -> str:
         """Build the template with this `policy.py`, push it; the image's pinned reference."""
         if name in self.published:
             return self.published[name]
         context = self.work / name
-        context.mkdir()
+        context.mkdir(exist_ok=True)
         (context / "policy.py").write_text(policy_source)
         (context / "Dockerfile").write_text(
             f"FROM {TEMPLATE_IMAGE}\nCOPY policy.py /opt/policy/policy.py\n"
         )
-        local = f"localhost/manieval-test/{name}:latest"
-        self.engine.podman("build", "--quiet", "--tag", local, str(context))
+        local = self.local_tag(name)
+        # --no-cache: a cache hit would hand back another session's image ID.
+        self.engine.podman("build", "--quiet", "--no-cache", "--tag", local, str(context))
         digest_file = context / "digest"
         remote = f"{self.registry.domain}/manieval-test/{name}"
         self.engine.podman(
@@ -200,11 +208,12 @@ def fixture_policy_images(
     # The base and the template stay as the next session's cache; the policies go, with the
     # names they got from this session's registry.
     with closing(container_engine.client()) as client:
-        for pinned in images.published.values():
-            try:
-                client.images.remove(client.images.get(pinned).id, force=True)
-            except DockerException:
-                pass
+        for name, pinned in images.published.items():
+            for reference in (images.local_tag(name), pinned):
+                try:
+                    client.images.remove(reference)  # this reference only, never by ID
+                except DockerException:
+                    pass
 
 
 def policy_containers(

@@ -53,7 +53,7 @@ def test_a_local_tag_and_a_pinned_reference_score_like_the_directory(
     code, output, expected = run(tmp_path, "--policy", str(SCRIPTED))
     assert code == 0, output
     assert expected is not None
-    for image in (pinned, "localhost/manieval-test/scripted:latest"):
+    for image in (pinned, policy_images.local_tag("scripted")):
         code, output, doc = run(tmp_path, "--image", image, "--engine", container_engine.url)
         assert code == 0, output
         assert doc is not None
