@@ -91,16 +91,8 @@ def suite_of(challenge: Challenge) -> Suite:
     return Suite.model_validate(yaml.safe_load(challenge.suite_yaml))
 
 
-def seed_secret_for(seed_secret: str, challenge_slug: str) -> bytes:
-    """The key test seeds derive from. The derivation already mixes in the suite's name, so
-    challenges never share hidden seeds, and an organizer with the same secret reproduces
-    them offline: ``MANIEVAL_SEED_SECRET=... manieval evaluate --phase test``."""
-    del challenge_slug
-    return seed_secret.encode()
-
-
 def phase_seed_map(suite: Suite, phase: str, seed_secret: str) -> dict[str, list[int]]:
-    secret = seed_secret_for(seed_secret, suite.name)
+    secret = seed_secret.encode()  # the HMAC mixes in the suite's name: no shared seeds
     return {
         task.env_id: phase_seeds(suite, phase, task.env_id, task.episodes, secret=secret)
         for task in suite.tasks

@@ -330,10 +330,3 @@ def new_attempt(
 
     refresh(db, submission.phase_id, submission.user_id)
     return True
-
-
-def get_submission(db: DB, submission_id: int) -> Submission:
-    submission = db.get(Submission, submission_id)
-    if submission is None:
-        raise NotFound(f"no submission {submission_id}")
-    return submission

@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -21,7 +20,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import EpisodeResult, EvaluationResult
 from evaluator.sources import LocalDirectory, PolicySource
-from server.challenges import seed_secret_for, suite_of
+from server.challenges import suite_of
 from server.errors import Conflict
 from server.ingest import report_final, report_progress, report_state
 from server.models import State, Submission, utcnow
@@ -122,7 +121,8 @@ def execute(
         pull = getattr(source, "pull", None)
         if pull is not None:
             pull()  # before `running`: pulling time is not the policy's budget
-        secret = seed_secret_for(settings.secret("seed_secret"), suite.name)
+        # The same key `MANIEVAL_SEED_SECRET=... manieval evaluate --phase test` uses offline.
+        secret = settings.secret("seed_secret").encode()
         plan = build_plan(suite, phase, secret=secret)
     except Exception as exc:  # our configuration: error, with the reason
         return _finish(sessions, submission_id, attempt, State.ERROR, f"cannot run: {exc}")
@@ -248,6 +248,3 @@ def _final_state(sessions: sessionmaker[Session], submission_id: int) -> State |
     with sessions() as db:
         submission = db.get(Submission, submission_id)
         return submission.state if submission is not None else None
-
-
-OnDone = Callable[[int, int, State | None], None]

@@ -23,10 +23,10 @@ from server.app import create_app, image_resolver
 from server.challenges import ChallengeOptions, load_challenge
 from server.db import make_engine, session_factory, upgrade
 from server.images import ImageReference, ResolvedImage
-from server.models import Base, Challenge, User
+from server.models import Base, Challenge, Submission, User
 from server.ratelimit import MemoryRateLimiter
 from server.settings import Settings
-from server.submissions import Resolver
+from server.submissions import Resolved, Resolver, submit
 
 PG_ADMIN_URL = os.environ.get(
     "MANIEVAL_TEST_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
@@ -147,6 +147,23 @@ def embedded_database(settings: Settings, **options: object) -> sessionmaker[Ses
                 seed_secret=settings.secret("seed_secret"),
             )
     return sessions
+
+
+def queue_submission(
+    db: Session, user: User, challenge: Challenge, phase: str = "dev"
+) -> Submission:
+    """A queued submission through the real submit path, with a stand-in pinned image."""
+    target = next(p for p in challenge.phases if p.name == phase)
+    return submit(
+        db,
+        user,
+        challenge,
+        target,
+        image="x",
+        description="",
+        public=True,
+        resolve=lambda _image: Resolved(pinned="x@sha256:" + "0" * 64, size_bytes=1),
+    )
 
 
 # The app ---------------------------------------------------------------------------------------

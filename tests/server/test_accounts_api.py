@@ -10,7 +10,7 @@ from server.app import create_app
 from server.models import ApiToken
 from server.ratelimit import MemoryRateLimiter
 from server.settings import Settings
-from tests.server.conftest import PASSWORD, RecordingQueue, fake_resolve_for, make_user, token_for
+from tests.server.conftest import PASSWORD, RecordingQueue, fake_resolve_for, token_for
 
 API = "/api/v1"
 
@@ -168,8 +168,3 @@ def test_rate_limits_answer_429_with_retry_after(
             for _ in range(4)
         ]
         assert codes == [401, 401, 401, 429]
-
-
-def test_admin_command_creates_admin(db: Session) -> None:
-    admin = make_user(db, "chief", admin=True)
-    assert admin.is_admin

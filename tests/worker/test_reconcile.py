@@ -8,28 +8,15 @@ from datetime import timedelta
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.challenges import get_challenge, get_phase
 from server.ingest import report_state
 from server.models import State, Submission, Transition, utcnow
-from server.submissions import Resolved, submit
-from tests.server.conftest import RecordingQueue, make_challenge, make_user
+from tests.server.conftest import RecordingQueue, make_challenge, make_user, queue_submission
 from worker.reconcile import reconcile
 
 
 def _submission(db: Session, name: str = "alice") -> Submission:
     challenge = make_challenge(db, quota_concurrent=100, quota_per_day=100)
-    phase = get_phase(get_challenge(db, challenge.slug), "dev")
-    user = make_user(db, name)
-    s = submit(
-        db,
-        user,
-        challenge,
-        phase,
-        image="x",
-        description="",
-        public=True,
-        resolve=lambda _i: Resolved(pinned="x@sha256:" + "0" * 64, size_bytes=1),
-    )
+    s = queue_submission(db, make_user(db, name), challenge)
     db.commit()
     return s
 

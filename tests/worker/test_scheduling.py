@@ -9,10 +9,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.challenges import get_challenge, get_phase
 from server.models import State, Submission
-from server.submissions import Resolved, submit
-from tests.server.conftest import make_challenge, make_user
+from tests.server.conftest import make_challenge, make_user, queue_submission
 from worker.scheduling import claim_next, fair_order
 
 
@@ -45,20 +43,10 @@ def test_fair_order_properties(users: list[int], running: dict[int, int], cap: i
 
 def _queue(db: Session, n_per_user: dict[str, int]) -> None:
     challenge = make_challenge(db, quota_concurrent=100, quota_per_day=100)
-    phase = get_phase(get_challenge(db, challenge.slug), "dev")
     for name, n in n_per_user.items():
         user = make_user(db, name)
         for _ in range(n):
-            submit(
-                db,
-                user,
-                challenge,
-                phase,
-                image="x",
-                description="",
-                public=True,
-                resolve=lambda _i: Resolved(pinned="x@sha256:" + "0" * 64, size_bytes=1),
-            )
+            queue_submission(db, user, challenge)
     db.commit()
 
 
