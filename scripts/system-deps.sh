@@ -26,6 +26,10 @@ command -v podman >/dev/null || missing+=(podman)
 [ -x /usr/sbin/runc ] || missing+=(runc)
 command -v debootstrap >/dev/null || missing+=(debootstrap)
 command -v openssl >/dev/null || missing+=(openssl)  # signs the test registry's tokens
+# Browser tests drive Debian's Chromium through Playwright (no browser download needed).
+[ -x /usr/bin/chromium ] || missing+=(chromium)
+# The deployment tests render the kustomize overlays with kubectl's embedded kustomize.
+command -v kubectl >/dev/null || missing+=(kubernetes-client)
 
 [ ${#missing[@]} -eq 0 ] && exit 0
 
