@@ -109,6 +109,9 @@ class Suite(_Strict):
     phases: dict[str, Phase] = Field(min_length=1)
     conditions: tuple[Condition, ...] = (Condition(name="nominal", params=Nominal()),)
     limits: Limits = Limits()
+    shards: int = Field(default=1, ge=1, le=64)
+    """Pods a submission's episodes are spread over on Kubernetes (an Indexed Job); the other
+    executors ignore it. Episodes do not depend on where they ran, so it is not in the hash."""
 
     @model_validator(mode="after")
     def _unique_names(self) -> Suite:
@@ -146,7 +149,8 @@ class Suite(_Strict):
 
     def sha256(self) -> str:
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
-        canonical = json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+        content = self.model_dump(mode="json", exclude={"shards"})
+        canonical = json.dumps(content, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
 
 

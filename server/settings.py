@@ -81,6 +81,28 @@ class Settings(BaseSettings):
     policy_memory_mib: int = Field(default=2048, ge=64)
     policy_cpus: float = Field(default=1.0, gt=0)
 
+    executor: Literal["docker", "kubernetes"] = "docker"
+    """Where policy images run: ``docker`` (the engine above, evaluator in the worker) or
+    ``kubernetes`` (one Job per attempt, evaluator and policy in its pod). Bundled
+    ``local:`` policies always run in the worker, when allowed."""
+
+    k8s_namespace: str = "manieval-eval"
+    """The namespace evaluation Jobs run in (Pod Security "restricted", default-deny network)."""
+    k8s_in_cluster: bool = False
+    """Authenticate with the pod's service account; otherwise a kubeconfig is used."""
+    k8s_kubeconfig: Path | None = None
+    """The kubeconfig file (default: ``$KUBECONFIG`` or ``~/.kube/config``)."""
+    k8s_api_url: str | None = None
+    """Talk to this API URL without credentials (``kubectl proxy``; the tests' double)."""
+    evaluator_image: str | None = None
+    """The evaluator image the Jobs run (``docker/evaluator``), ideally pinned by digest."""
+    evaluator_cpu: str = "2"
+    evaluator_memory: str = "4Gi"
+    k8s_runtime_class: str | None = None
+    """RuntimeClass of evaluation pods, e.g. ``gvisor`` (sandboxes the policy's syscalls)."""
+    k8s_poll_interval: float = Field(default=5.0, gt=0, le=300)
+    """Seconds between looks at a running Job (status, progress, image pulls)."""
+
     inline_workers: int = Field(default=1, ge=1, le=64)
     """Evaluations the embedded server runs at once."""
 

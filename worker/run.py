@@ -1,8 +1,10 @@
 """Run one attempt of one submission to a final state, reporting as it goes.
 
-The same code runs in the embedded server's worker thread and (with the worker issue) in a
-Celery task: it takes ids, reloads state, returns early when there is nothing left to do, and
-every path out of it, including an exception of ours, ends the attempt with a reason.
+The same code runs in the embedded server's worker thread and in a Celery task: it takes ids,
+reloads state, returns early when there is nothing left to do, and every path out of it,
+including an exception of ours, ends the attempt with a reason. Bundled `local:` policies and
+the `docker` executor evaluate here, in the worker; with `kubernetes` the attempt becomes a Job
+(`worker.k8s_run`) and this process watches it.
 """
 
 from __future__ import annotations
@@ -14,18 +16,17 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import update
 from sqlalchemy.orm import Session, sessionmaker
 
 from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import EpisodeResult, EvaluationResult
 from evaluator.sources import LocalDirectory, PolicySource
 from server.challenges import suite_of
-from server.errors import Conflict
-from server.ingest import report_final, report_progress, report_state
+from server.ingest import report_progress
 from server.models import State, Submission, utcnow
 from server.settings import Settings
 from server.submissions import LOCAL_PREFIX
+from worker.outcome import conclude, final_state, finish, start_running
 from worker.reconcile import Cleaner
 from worker.scheduling import claim_next
 
@@ -73,18 +74,32 @@ def policy_source(
 
 
 def container_cleaners(settings: Settings) -> list[Cleaner]:
-    """The reconciler's view of this worker's containers: remove those of no active attempt."""
+    """The reconciler's view of what runs evaluations: remove the containers and Jobs of
+    attempts that are no longer active (a worker crashed, or lost its connection)."""
+    cleaners: list[Cleaner] = []
     url = settings.docker_engine_url
-    if url is None:
-        return []
+    if url is not None:
 
-    def clean(active: set[tuple[int, int]]) -> list[str]:
-        from worker.containers import attempt_key, engine, remove_leftovers
+        def clean_containers(active: set[tuple[int, int]]) -> list[str]:
+            from worker.containers import attempt_key, engine, remove_leftovers
 
-        keep = {attempt_key(sid, attempt) for sid, attempt in active}
-        return remove_leftovers(engine(url), keep=keep)
+            keep = {attempt_key(sid, attempt) for sid, attempt in active}
+            return remove_leftovers(engine(url), keep=keep)
 
-    return [clean]
+        cleaners.append(clean_containers)
+    if settings.executor == "kubernetes":
+
+        def clean_jobs(active: set[tuple[int, int]]) -> list[str]:
+            from worker.k8s_run import kubernetes_executor
+
+            executor = kubernetes_executor(settings)
+            try:
+                return executor.delete_orphans(keep=active)
+            finally:
+                executor.close()
+
+        cleaners.append(clean_jobs)
+    return cleaners
 
 
 def run_next(
@@ -114,8 +129,22 @@ def execute(
         if submission.state != State.LAUNCHING:
             return submission.state  # cancelled between the claim and now
         suite = suite_of(submission.challenge)
+        suite_yaml = submission.challenge.suite_yaml
         phase = submission.phase.name
         pinned = submission.pinned_image
+    if settings.executor == "kubernetes" and not pinned.startswith(LOCAL_PREFIX):
+        from worker.k8s_run import run_as_job
+
+        return run_as_job(
+            sessions,
+            settings,
+            submission_id,
+            attempt,
+            suite=suite,
+            suite_yaml=suite_yaml,
+            phase=phase,
+            pinned=pinned,
+        )
     try:
         source = policy_source(pinned, settings, submission_id=submission_id, attempt=attempt)
         pull = getattr(source, "pull", None)
@@ -125,22 +154,16 @@ def execute(
         secret = settings.secret("seed_secret").encode()
         plan = build_plan(suite, phase, secret=secret)
     except Exception as exc:  # our configuration: error, with the reason
-        return _finish(sessions, submission_id, attempt, State.ERROR, f"cannot run: {exc}")
+        return finish(sessions, submission_id, attempt, State.ERROR, f"cannot run: {exc}")
 
     deadline = utcnow() + timedelta(seconds=plan.limits.budget_s * 1.1 + DEADLINE_GRACE_S)
-    with sessions.begin() as db:
-        if not report_state(db, submission_id, attempt, State.RUNNING, "evaluating"):
-            return _final_state(sessions, submission_id)
-        db.execute(
-            update(Submission)
-            .where(Submission.id == submission_id, Submission.attempt == attempt)
-            .values(deadline_at=deadline)
-        )
+    if not start_running(sessions, submission_id, attempt, deadline):
+        return final_state(sessions, submission_id)
     try:
         result = _evaluate(sessions, submission_id, attempt, plan, source)
     except Exception as exc:
         log.exception("evaluation of submission %s attempt %s crashed", submission_id, attempt)
-        return _finish(
+        return finish(
             sessions,
             submission_id,
             attempt,
@@ -148,27 +171,8 @@ def execute(
             f"the evaluator failed: {type(exc).__name__}: {exc}",
         )
     if result is None:  # cancelled while running: the cancel already recorded the state
-        return _final_state(sessions, submission_id)
-    if result.status == "aborted" and result.abort is not None:
-        abort = result.abort
-        state = State.TIMED_OUT if abort.kind == "budget_exhausted" else State.FAILED
-        return _finish(
-            sessions,
-            submission_id,
-            attempt,
-            state,
-            abort.reason,
-            result=result,
-            log_tail=abort.log_tail,
-        )
-    return _finish(
-        sessions,
-        submission_id,
-        attempt,
-        State.SUCCEEDED,
-        f"score {result.score:.3f}",
-        result=result,
-    )
+        return final_state(sessions, submission_id)
+    return conclude(sessions, submission_id, attempt, result)
 
 
 def _evaluate(
@@ -222,29 +226,3 @@ def _evaluate(
         finished.set()
         beat.join()
     return None if stopped.is_set() else result
-
-
-def _finish(
-    sessions: sessionmaker[Session],
-    submission_id: int,
-    attempt: int,
-    state: State,
-    reason: str,
-    *,
-    result: EvaluationResult | None = None,
-    log_tail: str = "",
-) -> State | None:
-    try:
-        with sessions.begin() as db:
-            report_final(
-                db, submission_id, attempt, state, reason, result=result, log_tail=log_tail
-            )
-    except Conflict:
-        pass  # a re-run replaced this attempt
-    return _final_state(sessions, submission_id)
-
-
-def _final_state(sessions: sessionmaker[Session], submission_id: int) -> State | None:
-    with sessions() as db:
-        submission = db.get(Submission, submission_id)
-        return submission.state if submission is not None else None

@@ -32,7 +32,8 @@ import kubernetes_validate
 from kubernetes.client import ApiClient, Configuration
 
 from evaluator.job import EvaluationJob
-from worker.kubernetes import INDEX_LABEL, Backoff, JobSpec, KubernetesExecutor, Resources
+from worker.k8s_executor import Backoff, KubernetesExecutor
+from worker.kubernetes import INDEX_LABEL, JobSpec, Resources
 
 NAMESPACE = "manieval-eval"
 SCHEMA_VERSION = "1.30"
@@ -243,6 +244,46 @@ class ApiServerDouble:
                 ]
             return self._add_pod(self.jobs[(namespace, name)], 0, ready=True)
 
+    def write_log(self, namespace: str, name: str, container: str, text: str) -> None:
+        """What a container of the Job's (first) pod has printed so far."""
+        with self.lock:
+            pod = self._pods_of(namespace, name)[0]
+            self.logs[(namespace, pod["metadata"]["name"], container)] = text
+
+    def cannot_pull(
+        self, namespace: str, name: str, container: str, *, reason: str = "ImagePullBackOff"
+    ) -> None:
+        """The kubelet cannot pull `container`'s image: the pod stays Pending, waiting."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                statuses = pod["status"].setdefault("initContainerStatuses", [])
+                statuses.append(
+                    {
+                        "name": container,
+                        "image": "unpullable",
+                        "imageID": "",
+                        "ready": False,
+                        "restartCount": 0,
+                        "state": {
+                            "waiting": {
+                                "reason": reason,
+                                "message": 'Back-off pulling image "unpullable"',
+                            }
+                        },
+                    }
+                )
+
+    def policy_killed(self, namespace: str, name: str, *, reason: str = "OOMKilled") -> None:
+        """The policy sidecar was killed (and restarted): its last state says how."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                for status in pod["status"].get("initContainerStatuses", []):
+                    if status["name"] == "policy":
+                        status["restartCount"] += 1
+                        status["lastState"] = {
+                            "terminated": {"exitCode": 137, "reason": reason, "finishedAt": None}
+                        }
+
     def finish_deletions(self) -> None:
         """The garbage collector finishes every pending foreground deletion."""
         with self.lock:
@@ -426,9 +467,32 @@ class ApiServerDouble:
                 "ownerReferences": [owner | {"uid": job["metadata"]["uid"]}],
             },
             "spec": template["spec"],
-            "status": {"phase": "Running" if ready else "Pending"},
+            "status": {"phase": "Pending"},
         }
+        if ready:
+            self._start_containers(self.pods[(namespace, name)])
         return name
+
+    def _start_containers(self, pod: Json) -> None:
+        """The kubelet pulled both images and started the policy sidecar, then the evaluator."""
+        spec, now = pod["spec"], self._now()
+
+        def running(container: Json) -> Json:
+            return {
+                "name": container["name"],
+                "image": container["image"],
+                "imageID": "",
+                "ready": True,
+                "restartCount": 0,
+                "started": True,
+                "state": {"running": {"startedAt": now}},
+            }
+
+        pod["status"] = {
+            "phase": "Running",
+            "initContainerStatuses": [running(c) for c in spec.get("initContainers", [])],
+            "containerStatuses": [running(c) for c in spec["containers"]],
+        }
 
     def _conclude(self, job: Json, interim: str, final: str, reason: str, message: str) -> None:
         now = self._now()
