@@ -47,11 +47,14 @@ def serve(
     import uvicorn
 
     from server.app import create_app
+    from server.observability import configure_logging
 
     s = settings()
+    configure_logging(s.log_format, s.log_level)
     sessions = _sessions(s)
     console.print(f"ManiEval on http://{host}:{port}  (data: {s.data_dir}, docs: /docs)")
-    uvicorn.run(create_app(s, sessions=sessions), host=host, port=port, log_level="info")
+    app = create_app(s, sessions=sessions)
+    uvicorn.run(app, host=host, port=port, log_config=None, proxy_headers=True)
 
 
 @db_app.command("upgrade")

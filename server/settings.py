@@ -121,6 +121,13 @@ class Settings(BaseSettings):
     leaderboard_max_age: float = Field(default=1.0, ge=0, le=3600)
     """Seconds a rendered leaderboard page is served before checking for a newer version."""
 
+    log_format: Literal["text", "json"] = "text"
+    """``json``: one JSON object per line (for a log pipeline); ``text`` for people."""
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    metrics_token: SecretStr | None = None
+    """When set, ``/metrics`` asks for ``Authorization: Bearer <token>`` (Prometheus's
+    ``authorization`` setting); unset, keep ``/metrics`` off the public ingress."""
+
     session_days: int = 14
     cookie_secure: bool = True
     """Send the session cookie only over HTTPS; the embedded demo turns it off."""

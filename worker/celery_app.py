@@ -3,6 +3,9 @@
     celery -A worker.celery_app worker --concurrency 1    # one evaluation per process
     celery -A worker.celery_app beat                      # the reconciler, every 30 s
 
+With MANIEVAL_EXECUTOR=kubernetes a task only watches its Job, so one worker process can run
+many (`--pool threads --concurrency 16`): the evaluations run in the cluster.
+
 Messages carry no work, only a wake-up: the task claims the fairest queued submission from
 the database. So `acks_late` is safe (a redelivered message claims nothing twice), a worker's
 prefetch of one cannot hoard long evaluations, and a lost message is replaced by the
@@ -16,6 +19,7 @@ import logging
 from typing import Any
 
 from celery import Celery
+from celery.signals import setup_logging
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db import make_engine, session_factory
@@ -77,4 +81,12 @@ def _reconcile() -> Any:
     return {"timed_out": report.timed_out, "lost": report.lost, "woken": report.woken}
 
 
+def _logging(**_kwargs: Any) -> None:
+    """Celery's records go through ours: text or JSON lines (MANIEVAL_LOG_FORMAT)."""
+    from server.observability import configure_logging
+
+    configure_logging(_settings().log_format, _settings().log_level)
+
+
+setup_logging.connect(_logging)
 app = make_app(_settings())
