@@ -4,6 +4,7 @@ import typer
 
 from evaluator.cli import evaluate
 from evaluator.job import evaluate_job
+from manieval import account, participant
 from server.cli import admin_app, challenge_app, db_app, demo, serve
 
 app = typer.Typer(
@@ -13,16 +14,32 @@ app = typer.Typer(
     add_completion=False,
 )
 
+PARTICIPATE = "Take part (against a server)"
+OPERATE = "Evaluate locally and run the service"
+
 
 @app.callback()
 def main() -> None:
     """ManiEval command line."""
 
 
-app.command("evaluate")(evaluate)
+for command in (
+    account.register,
+    account.login,
+    account.logout,
+    participant.challenges,
+    participant.submit,
+    participant.status,
+    participant.logs,
+    participant.cancel,
+    participant.leaderboard,
+):
+    app.command(rich_help_panel=PARTICIPATE)(command)
+
+app.command("evaluate", rich_help_panel=OPERATE)(evaluate)
 app.command("evaluate-job", hidden=True)(evaluate_job)
-app.command("serve")(serve)
-app.command("demo")(demo)
-app.add_typer(db_app, name="db")
-app.add_typer(admin_app, name="admin")
-app.add_typer(challenge_app, name="challenge")
+app.command("serve", rich_help_panel=OPERATE)(serve)
+app.command("demo", rich_help_panel=OPERATE)(demo)
+app.add_typer(db_app, name="db", rich_help_panel=OPERATE)
+app.add_typer(admin_app, name="admin", rich_help_panel=OPERATE)
+app.add_typer(challenge_app, name="challenge", rich_help_panel=OPERATE)

@@ -1,0 +1,281 @@
+"""An HTTP client of the ManiEval API (``/api/v1``), as the participant commands use it.
+
+Every failure is a `ClientError`: `Unreachable` when no answer came back, `ApiError` when the
+server answered with an error (its ``{"error": {"code", "message", "fields"}}`` body read into
+attributes), `NotLoggedIn` when a call needs a token and there is none.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from datetime import datetime
+from types import TracebackType
+from typing import Any
+from urllib.parse import quote, urlsplit
+
+import httpx
+
+from manieval import __version__
+
+DEFAULT_SERVER = "http://127.0.0.1:8000"
+API = "/api/v1"
+TIMEOUT = httpx.Timeout(30.0, connect=10.0)
+# Submitting resolves the image through its registry (several requests, each with its own
+# server-side timeout): give it longer than a plain read.
+SUBMIT_TIMEOUT = httpx.Timeout(120.0, connect=10.0)
+
+JSON = dict[str, Any]
+
+
+class ClientError(Exception):
+    """Anything that kept a call from getting its answer."""
+
+
+class Unreachable(ClientError):
+    def __init__(self, server: str, reason: str) -> None:
+        super().__init__(f"cannot reach {server}: {reason}")
+        self.server = server
+        self.reason = reason
+
+
+class NotLoggedIn(ClientError):
+    def __init__(self, server: str, *, other: str | None = None) -> None:
+        super().__init__(f"not logged in to {server}")
+        self.server = server
+        self.other = other  # the server the saved login is for, if another one
+
+
+@dataclass
+class ApiError(ClientError):
+    """The server's error answer."""
+
+    status: int
+    code: str
+    message: str
+    fields: dict[str, str] = field(default_factory=dict)
+    retry_after: float | None = None
+    resets_at: datetime | None = None
+    authenticated: bool = False  # whether the request carried an API token
+    server: str = ""
+
+    def __post_init__(self) -> None:
+        super().__init__(self.message)
+
+    @classmethod
+    def from_response(
+        cls, response: httpx.Response, *, server: str, authenticated: bool
+    ) -> ApiError:
+        body: Any = None
+        try:
+            body = response.json()
+        except ValueError:
+            pass
+        error = body.get("error") if isinstance(body, dict) else None
+        if not isinstance(error, dict) or not isinstance(error.get("code"), str):
+            # Not our error shape: a proxy, or not a ManiEval server at all.
+            return cls(
+                status=response.status_code,
+                code="http_error",
+                message=f"HTTP {response.status_code} {response.reason_phrase} from "
+                f"{response.request.url}",
+                retry_after=_retry_after(response, None),
+                authenticated=authenticated,
+                server=server,
+            )
+        fields = error.get("fields")
+        return cls(
+            status=response.status_code,
+            code=error["code"],
+            message=str(error.get("message", "")),
+            fields={str(k): str(v) for k, v in fields.items()} if isinstance(fields, dict) else {},
+            retry_after=_retry_after(response, error.get("retry_after")),
+            resets_at=_datetime(error.get("resets_at")),
+            authenticated=authenticated,
+            server=server,
+        )
+
+
+def _retry_after(response: httpx.Response, in_body: object) -> float | None:
+    header = response.headers.get("Retry-After")
+    if header is not None and header.strip().isdigit():
+        return float(header)
+    return float(in_body) if isinstance(in_body, int | float) else None
+
+
+def _datetime(value: object) -> datetime | None:
+    if not isinstance(value, str):
+        return None
+    try:
+        return datetime.fromisoformat(value)
+    except ValueError:
+        return None
+
+
+def normalise_server(url: str) -> str:
+    """`http(s)://host[:port][/prefix]` without the trailing slash, or ValueError."""
+    url = url.strip().rstrip("/")
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ValueError(f"{url!r} is not a server URL: give http(s)://HOST[:PORT]")
+    return url
+
+
+def is_loopback(server: str) -> bool:
+    host = urlsplit(server).hostname or ""
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
+class Client:
+    """One server, with or without an API token. Use it as a context manager."""
+
+    def __init__(
+        self, server: str, *, token: str | None = None, transport: httpx.BaseTransport | None = None
+    ) -> None:
+        self.server = server
+        self.token = token
+        headers = {"User-Agent": f"manieval-cli/{__version__}"}
+        if token is not None:
+            headers["Authorization"] = f"Bearer {token}"
+        self._http = httpx.Client(
+            base_url=server, headers=headers, timeout=TIMEOUT, transport=transport
+        )
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(
+        self,
+        _type: type[BaseException] | None,
+        _value: BaseException | None,
+        _tb: TracebackType | None,
+    ) -> None:
+        self._http.close()
+
+    def request(
+        self,
+        method: str,
+        path: str,
+        *,
+        json: JSON | None = None,
+        params: dict[str, str | int] | None = None,
+        timeout: httpx.Timeout = TIMEOUT,
+    ) -> httpx.Response:
+        """One API call; raises `Unreachable` or `ApiError` unless the answer is a 2xx."""
+        try:
+            response = self._http.request(
+                method, API + path, json=json, params=params, timeout=timeout
+            )
+        except httpx.TimeoutException:
+            raise Unreachable(self.server, f"no answer within {timeout.read:.0f} s") from None
+        except httpx.TransportError as exc:
+            reason = re.sub(r"^\[Errno -?\d+\] ", "", str(exc)) or type(exc).__name__
+            raise Unreachable(self.server, reason) from None
+        if response.is_error:
+            raise ApiError.from_response(
+                response, server=self.server, authenticated=self.token is not None
+            )
+        return response
+
+    def call(self, method: str, path: str, **kwargs: Any) -> Any:
+        """`request`, then the JSON body (an `ApiError` if it is not JSON)."""
+        response = self.request(method, path, **kwargs)
+        try:
+            return response.json()
+        except ValueError:
+            raise ApiError(
+                status=response.status_code,
+                code="not_json",
+                message=f"{self.server} did not answer with JSON",
+                server=self.server,
+            ) from None
+
+    # Accounts ---------------------------------------------------------------------------------
+
+    def register(self, *, username: str, email: str, password: str) -> JSON:
+        body = {"username": username, "email": email, "password": password}
+        result: JSON = self.call("POST", "/users", json=body)
+        return result
+
+    def create_token(self, *, login: str, password: str, name: str) -> JSON:
+        """A new API token by password (its value is in this answer only)."""
+        body = {"login": login, "password": password, "name": name}
+        result: JSON = self.call("POST", "/auth/token", json=body)
+        return result
+
+    def revoke_token(self, token_id: int) -> JSON:
+        result: JSON = self.call("DELETE", f"/tokens/{token_id}")
+        return result
+
+    def me(self) -> JSON:
+        result: JSON = self.call("GET", "/me")
+        return result
+
+    # Challenges and leaderboards --------------------------------------------------------------
+
+    def challenges(self) -> list[JSON]:
+        """Every challenge, all pages."""
+        items: list[JSON] = []
+        page = 1
+        while True:
+            found = self.call("GET", "/challenges", params={"page": page, "per_page": 200})
+            items += found["items"]
+            if not found["items"] or len(items) >= found["total"]:
+                return items
+            page += 1
+
+    def challenge(self, slug: str) -> JSON:
+        result: JSON = self.call("GET", f"/challenges/{_segment(slug)}")
+        return result
+
+    def leaderboard(
+        self, slug: str, *, phase: str, page: int, per_page: int, format: str = "json"
+    ) -> httpx.Response:
+        """The raw answer: JSON or CSV bytes exactly as the server rendered them."""
+        params: dict[str, str | int] = {
+            "phase": phase,
+            "page": page,
+            "per_page": per_page,
+            "format": format,
+        }
+        return self.request("GET", f"/challenges/{_segment(slug)}/leaderboard", params=params)
+
+    # Submissions ------------------------------------------------------------------------------
+
+    def submit(
+        self, *, challenge: str, phase: str, image: str, description: str, public: bool
+    ) -> JSON:
+        body = {
+            "challenge": challenge,
+            "phase": phase,
+            "image": image,
+            "description": description,
+            "public": public,
+        }
+        result: JSON = self.call("POST", "/submissions", json=body, timeout=SUBMIT_TIMEOUT)
+        return result
+
+    def submission(self, submission_id: int) -> JSON:
+        result: JSON = self.call("GET", f"/submissions/{submission_id}")
+        return result
+
+    def my_submissions(self, *, challenge: str | None, per_page: int) -> list[JSON]:
+        """My newest submissions first."""
+        params: dict[str, str | int] = {"per_page": per_page}
+        if challenge is not None:
+            params["challenge"] = challenge
+        items: list[JSON] = self.call("GET", "/submissions", params=params)["items"]
+        return items
+
+    def logs(self, submission_id: int) -> JSON:
+        result: JSON = self.call("GET", f"/submissions/{submission_id}/logs")
+        return result
+
+    def cancel(self, submission_id: int) -> JSON:
+        result: JSON = self.call("POST", f"/submissions/{submission_id}/cancel")
+        return result
+
+
+def _segment(value: str) -> str:
+    """A user-given path segment, quoted so that it stays one segment."""
+    return quote(value, safe="")

@@ -1,0 +1,198 @@
+"""The participant commands that take part in challenges: challenges, leaderboard, submit,
+status, logs and cancel. Like the account commands (manieval/account.py) they speak to the
+server's public API only; docs/cli.md describes them with their exit codes."""
+
+from __future__ import annotations
+
+import sys
+from typing import Annotated, Any, NoReturn
+
+import typer
+from rich.text import Text
+
+from manieval import render
+from manieval.client import Client
+from manieval.connect import JsonOption, ServerOption, connect, print_json
+from manieval.errors import STATE_CODES, ExitCode, handled, server_flag
+from manieval.follow import FINAL_STATES, follow
+
+SubmissionId = Annotated[int, typer.Argument(min=1, help="The submission's number.")]
+
+
+# Challenges -----------------------------------------------------------------------------------
+
+
+def challenges(server: ServerOption = None, as_json: JsonOption = False) -> None:
+    """List the challenges and their phases."""
+    with handled(), connect(server, login="none") as client:
+        items = client.challenges()
+    if as_json:
+        print_json(items)
+    elif not items:
+        render.stderr().print(f"no challenges on {client.server} yet")
+    else:
+        render.stdout().print(render.challenges_table(items))
+
+
+def leaderboard(
+    challenge: Annotated[str, typer.Argument(help="The challenge's name.")],
+    phase: Annotated[str, typer.Option(help="The phase.")] = "dev",
+    page: Annotated[int, typer.Option(min=1, help="Which page of rows.")] = 1,
+    per_page: Annotated[int, typer.Option(min=1, max=200, help="Rows per page.")] = 50,
+    as_json: JsonOption = False,
+    as_csv: Annotated[
+        bool, typer.Option("--csv", help="Print CSV, as the server renders it.")
+    ] = False,
+    server: ServerOption = None,
+) -> None:
+    """Show a challenge's leaderboard: the best public submission of each participant."""
+    if as_json and as_csv:
+        raise typer.BadParameter("choose one of --json and --csv", param_hint="--csv")
+    with handled(), connect(server, login="none") as client:
+        response = client.leaderboard(
+            challenge, phase=phase, page=page, per_page=per_page, format="csv" if as_csv else "json"
+        )
+    if as_json or as_csv:
+        render.write_raw(response.content)
+        return
+    board = response.json()
+    if not board["items"]:
+        render.stderr().print(f"no ranked submissions on {challenge} ({phase}) yet")
+        return
+    render.stdout().print(render.leaderboard_table(board))
+
+
+# Submissions ----------------------------------------------------------------------------------
+
+
+def submit(
+    image: Annotated[str, typer.Argument(help="Image reference: registry/repo:tag or @sha256:...")],
+    challenge: Annotated[str, typer.Option("--challenge", "-c", help="The challenge's name.")],
+    phase: Annotated[str, typer.Option(help="The phase.")] = "dev",
+    description: Annotated[str, typer.Option(help="A note shown with the submission.")] = "",
+    private: Annotated[
+        bool, typer.Option("--private", help="Keep it off the public leaderboard.")
+    ] = False,
+    wait: Annotated[
+        bool, typer.Option("--wait", help="Follow it to its end; exit 0 only if it succeeds.")
+    ] = False,
+    as_json: JsonOption = False,
+    server: ServerOption = None,
+) -> None:
+    """Submit a policy image to a challenge (its tag is pinned to a digest at once)."""
+    with handled(), connect(server, login="required") as client:
+        s = client.submit(
+            challenge=challenge,
+            phase=phase,
+            image=image,
+            description=description,
+            public=not private,
+        )
+        err = render.stderr()
+        err.print(f"submission {s['id']} accepted: {s['pinned_image']}")
+        if not wait:
+            if as_json:
+                print_json(s)
+            err.print(f"follow it: manieval status {s['id']} --wait{server_flag(client.server)}")
+            return
+        _wait_and_report(client, s["id"], as_json=as_json)
+
+
+def _wait_and_report(client: Client, submission_id: int, *, as_json: bool) -> NoReturn:
+    """Follow to the end, print the outcome, exit with the final state's code."""
+    try:
+        final = follow(client, submission_id)
+    except KeyboardInterrupt:
+        flag = server_flag(client.server)
+        render.stderr().print(
+            f"\nstopped waiting; submission {submission_id} goes on on the server (not cancelled)\n"
+            f"  follow it again: manieval status {submission_id} --wait{flag}\n"
+            f"  cancel it:       manieval cancel {submission_id}{flag}"
+        )
+        raise typer.Exit(ExitCode.INTERRUPTED) from None
+    if as_json:
+        print_json(final)
+    else:
+        _report(final, client.server)
+    raise typer.Exit(STATE_CODES[final["state"]])
+
+
+def _report(s: dict[str, Any], server: str) -> None:
+    out = render.stdout()
+    if s["tasks"]:
+        out.print(render.results_table(s))
+    if s["state"] in ("failed", "timed_out", "error"):
+        render.stderr().print(
+            Text(f"submission {s['id']} {s['state']}: {s['reason']}\n", style="red")
+            + Text(f"its log: manieval logs {s['id']}{server_flag(server)}")
+        )
+
+
+def status(
+    submission_id: Annotated[
+        int | None,
+        typer.Argument(min=1, help="A submission; without it, your recent ones are listed."),
+    ] = None,
+    challenge: Annotated[
+        str | None, typer.Option(help="List only this challenge's submissions.")
+    ] = None,
+    limit: Annotated[int, typer.Option(min=1, max=200, help="How many to list.")] = 20,
+    wait: Annotated[
+        bool, typer.Option("--wait", help="Follow it to its end; exit 0 only if it succeeds.")
+    ] = False,
+    as_json: JsonOption = False,
+    server: ServerOption = None,
+) -> None:
+    """Show one submission (state, timeline, results), or list your recent submissions."""
+    if submission_id is None:
+        if wait:
+            raise typer.BadParameter("--wait needs a submission number", param_hint="--wait")
+        _list_mine(server, challenge=challenge, limit=limit, as_json=as_json)
+        return
+    with handled(), connect(server, login="optional") as client:
+        s = client.submission(submission_id)
+        if wait:
+            _wait_and_report(client, submission_id, as_json=as_json)
+    if as_json:
+        print_json(s)
+        return
+    out = render.stdout()
+    out.print(render.submission_summary(s))
+    out.print(render.timeline(s))
+    if s["tasks"]:
+        out.print(render.results_table(s))
+    if s["state"] not in FINAL_STATES:
+        render.stderr().print(
+            f"follow it: manieval status {s['id']} --wait{server_flag(client.server)}"
+        )
+
+
+def _list_mine(server: str | None, *, challenge: str | None, limit: int, as_json: bool) -> None:
+    with handled(), connect(server, login="required") as client:
+        items = client.my_submissions(challenge=challenge, per_page=limit)
+    if as_json:
+        print_json(items)
+    elif not items:
+        render.stderr().print("no submissions yet")
+    else:
+        render.stdout().print(render.submissions_table(items))
+
+
+def logs(submission_id: SubmissionId, server: ServerOption = None) -> None:
+    """Print the tail of your policy's log (stdout and stderr) for a submission."""
+    with handled(), connect(server, login="required") as client:
+        found = client.logs(submission_id)
+    if not found["log_tail"]:
+        render.stderr().print(
+            f"no log for submission {submission_id} (attempt {found['attempt']}) yet"
+        )
+        return
+    text = render.printable(found["log_tail"], terminal=sys.stdout.isatty())
+    sys.stdout.write(text if text.endswith("\n") else text + "\n")
+
+
+def cancel(submission_id: SubmissionId, server: ServerOption = None) -> None:
+    """Cancel a queued or running submission (its quota is given back)."""
+    with handled(), connect(server, login="required") as client:
+        s = client.cancel(submission_id)
+    render.stderr().print(Text(f"submission {s['id']}: ") + render.state(s["state"]))
