@@ -1,25 +1,28 @@
-"""The FastAPI application: ``create_app(settings)`` wires the API, the queue and the worker."""
+"""The FastAPI application: ``create_app(settings)`` wires the API, the web pages, the queue
+and the worker."""
 
 from __future__ import annotations
 
+import hmac
 import logging
 import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Any, Protocol
+from typing import Protocol
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from sqlalchemy import select, text
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from server import api, internal
+from server import api, internal, web, web_support
 from server.db import make_engine, session_factory
 from server.deps import Services
 from server.dispatch import Dispatcher, InlineQueue, WorkQueue
-from server.errors import AppError, ErrorBody, ErrorDetail, Invalid, Unavailable
+from server.errors import AppError, ErrorBody, ErrorDetail, Invalid, Unauthorized, Unavailable
 from server.images import (
     ImageError,
     ImageReference,
@@ -29,6 +32,7 @@ from server.images import (
     parse_reference,
 )
 from server.models import State, Submission
+from server.observability import HttpMetrics, ServiceCollector
 from server.ratelimit import MemoryRateLimiter, RateLimiter
 from server.settings import Settings
 from server.submissions import LOCAL_PREFIX, Resolved, Resolver, transition
@@ -180,7 +184,18 @@ def create_app(
     app.state.inline_queue = inline
     app.include_router(api.router)
     app.include_router(internal.router)
+    web.install(app)
     _install_error_handlers(app)
+
+    _install_monitoring(app, sessions, settings)
+    return app
+
+
+def _install_monitoring(app: FastAPI, sessions: sessionmaker[Session], settings: Settings) -> None:
+    """Liveness, readiness and Prometheus metrics (docs/server.md, Monitoring)."""
+    registry = CollectorRegistry()
+    registry.register(ServiceCollector(sessions))
+    app.middleware("http")(HttpMetrics(registry))
 
     @app.get("/healthz", include_in_schema=False)
     def healthz() -> dict[str, str]:
@@ -193,9 +208,35 @@ def create_app(
                 db.execute(text("SELECT 1"))
         except Exception as exc:
             return JSONResponse({"status": "unavailable", "database": str(exc)}, 503)
+        if (problem := _broker_problem(settings)) is not None:
+            return JSONResponse({"status": "unavailable", "broker": problem}, 503)
         return JSONResponse({"status": "ok"})
 
-    return app
+    @app.get("/metrics", include_in_schema=False)
+    def metrics(request: Request) -> Response:
+        token = settings.metrics_token
+        if token is not None:
+            sent = request.headers.get("authorization", "").encode("utf-8", "surrogateescape")
+            expected = f"Bearer {token.get_secret_value()}".encode()
+            if not hmac.compare_digest(sent, expected):
+                raise Unauthorized("send the metrics token: Authorization: Bearer <token>")
+        return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+
+def _broker_problem(settings: Settings) -> str | None:
+    """Why the Celery broker does not answer, or None (also when there is no broker)."""
+    if settings.queue != "celery":
+        return None
+    import redis
+
+    try:
+        with redis.Redis.from_url(
+            settings.broker_url, socket_connect_timeout=2, socket_timeout=2
+        ) as broker:
+            broker.ping()
+    except Exception as exc:
+        return str(exc) or type(exc).__name__
+    return None
 
 
 def _limiter(settings: Settings) -> RateLimiter:
@@ -233,34 +274,53 @@ def _sweep(
 
 
 def _install_error_handlers(app: FastAPI) -> None:
-    def respond(status: int, detail: ErrorDetail, headers: dict[str, str] | None = None) -> Any:
+    """One error body for the API (JSON), and its HTML twin for the web pages."""
+
+    def respond(
+        request: Request, status: int, detail: ErrorDetail, headers: dict[str, str] | None = None
+    ) -> Response:
+        if web_support.wants_html(request):
+            page = web_support.error_page(request, status, _TITLES.get(status, "Error"), detail)
+            page.headers.update(headers or {})
+            return page
         body = ErrorBody(error=detail).model_dump(mode="json", exclude_none=True)
         return JSONResponse(body, status_code=status, headers=headers)
 
     @app.exception_handler(AppError)
-    async def app_error(_request: Request, exc: AppError) -> JSONResponse:
-        return JSONResponse(exc.body(), status_code=exc.status, headers=exc.headers())
+    async def app_error(request: Request, exc: AppError) -> Response:
+        detail = ErrorDetail.model_validate(exc.body()["error"])
+        return respond(request, exc.status, detail, exc.headers())
 
     @app.exception_handler(RequestValidationError)
-    async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
+    async def validation_error(request: Request, exc: RequestValidationError) -> Response:
         fields: dict[str, str] = {}
         for error in exc.errors():
             loc = [str(part) for part in error.get("loc", ()) if part not in ("body", "query")]
             fields[".".join(loc) or "request"] = str(error.get("msg", "invalid"))
         detail = ErrorDetail(code="invalid", message="the request is not valid", fields=fields)
-        result: JSONResponse = respond(422, detail)
-        return result
+        return respond(request, 422, detail)
 
     @app.exception_handler(StarletteHTTPException)
-    async def http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
         detail = ErrorDetail(code=code, message=str(exc.detail))
-        result: JSONResponse = respond(exc.status_code, detail, getattr(exc, "headers", None))
-        return result
+        return respond(request, exc.status_code, detail, getattr(exc, "headers", None))
 
     @app.exception_handler(Exception)
-    async def crash(_request: Request, exc: Exception) -> JSONResponse:
+    async def crash(request: Request, exc: Exception) -> Response:
         log.exception("unhandled error", exc_info=exc)
         detail = ErrorDetail(code="internal", message="internal error; it has been logged")
-        result: JSONResponse = respond(500, detail)
-        return result
+        return respond(request, 500, detail)
+
+
+_TITLES = {
+    401: "Please log in",
+    403: "Not allowed",
+    404: "Not found",
+    405: "Not allowed",
+    409: "Not possible now",
+    422: "Something is not right",
+    429: "Too many requests",
+    500: "Something went wrong on our side",
+    503: "Unavailable; try again soon",
+}

@@ -54,7 +54,15 @@ def serve(
     sessions = _sessions(s)
     console.print(f"ManiEval on http://{host}:{port}  (data: {s.data_dir}, docs: /docs)")
     app = create_app(s, sessions=sessions)
-    uvicorn.run(app, host=host, port=port, log_config=None, proxy_headers=True)
+    # Open live streams (server-sent events) must not hold a Ctrl-C for long.
+    uvicorn.run(
+        app,
+        host=host,
+        port=port,
+        log_config=None,
+        proxy_headers=True,
+        timeout_graceful_shutdown=5,
+    )
 
 
 @db_app.command("upgrade")

@@ -49,7 +49,11 @@ def run_demo(
         password = _demo_account(db, settings.data_dir)
     server = uvicorn.Server(
         uvicorn.Config(
-            create_app(settings, sessions=sessions), host=host, port=port, log_level="warning"
+            create_app(settings, sessions=sessions),
+            host=host,
+            port=port,
+            log_level="warning",
+            timeout_graceful_shutdown=5,  # open live streams must not hold a Ctrl-C
         )
     )
     thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
@@ -70,7 +74,8 @@ def run_demo(
             ids = _submit_missing(client)
             _follow(client, ids)
             _print_leaderboard(client)
-        console.print(f"leaderboard: {url}/api/v1/challenges/{CHALLENGE}/leaderboard")
+        console.print(f"leaderboard: [bold]{url}/challenges/{CHALLENGE}/leaderboard[/]")
+        console.print(f"  (JSON: {url}/api/v1/challenges/{CHALLENGE}/leaderboard)")
         if exit_when_done:
             return 0
         console.print("serving; press Ctrl-C to stop")

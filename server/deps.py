@@ -65,8 +65,9 @@ class Caller:
 def caller(request: Request, db: Annotated[DB, Depends(get_db)]) -> Caller:
     """Who is asking: an API token (Authorization: Bearer) or the session cookie.
 
-    Cookie-authenticated writes must carry the CSRF token (header or form field); token
-    requests need none, since a browser never attaches them by itself.
+    Cookie-authenticated API writes must carry the CSRF token in the X-CSRF-Token header (the
+    web pages check their form field themselves, server/web_support.py); token requests need
+    none, since a browser never attaches them by itself.
     """
     header = request.headers.get("authorization")
     if header is not None:

@@ -210,4 +210,5 @@ def configure_logging(log_format: str, level: str = "INFO") -> None:
     for name in ("uvicorn", "uvicorn.error", "uvicorn.access", "celery"):
         logger = logging.getLogger(name)
         logger.handlers[:] = []
+        logger.setLevel(logging.NOTSET)  # the root's level decides, whoever configured it before
         logger.propagate = True

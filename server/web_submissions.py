@@ -1,0 +1,218 @@
+"""A submission's page: live timeline, results with intervals, episodes, log, videos, and the
+owner's and administrators' actions.
+
+Who sees what is the API's rule (`server.submissions`): a submission others may not see is a
+404, and its episodes, log and videos are for its owner and administrators only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Form, Query, Request
+from fastapi.responses import FileResponse, Response
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session as DB
+
+from server.deps import DBDep, services
+from server.errors import Forbidden, NotFound
+from server.ingest import task_rows
+from server.leaderboard import refresh
+from server.models import (
+    EpisodeResultRow,
+    State,
+    Submission,
+    TaskResultRow,
+    Transition,
+    User,
+)
+from server.submissions import cancel, get_visible, owned_or_admin, rerun
+from server.web_charts import TaskSuccess, success_bars
+from server.web_support import Id, PostedDep, Viewer, ViewerDep, redirect, render, signed_in
+
+router = APIRouter(include_in_schema=False)
+
+EPISODES_PER_PAGE = 100
+ENDED_BADLY = frozenset({State.FAILED, State.ERROR, State.TIMED_OUT, State.CANCELLED})
+PageNo = Annotated[int, Query(ge=1, le=100_000)]
+
+
+@dataclass(frozen=True)
+class Episode:
+    condition: str
+    env_id: str
+    row: EpisodeResultRow
+
+
+def _episodes(db: DB, s: Submission, page: int) -> tuple[list[Episode], int]:
+    query = (
+        select(EpisodeResultRow, TaskResultRow.condition, TaskResultRow.env_id)
+        .join(TaskResultRow, EpisodeResultRow.task_result_id == TaskResultRow.id)
+        .where(TaskResultRow.submission_id == s.id, TaskResultRow.attempt == s.attempt)
+    )
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = db.execute(
+        query.order_by(TaskResultRow.id, EpisodeResultRow.index)
+        .offset((page - 1) * EPISODES_PER_PAGE)
+        .limit(EPISODES_PER_PAGE)
+    ).all()
+    return [Episode(condition=c, env_id=e, row=r) for r, c, e in rows], total
+
+
+def _videos(s: Submission) -> list[dict[str, Any]]:
+    return list((s.result or {}).get("videos") or [])
+
+
+def outcome(db: DB, s: Submission, who: Viewer, episode_page: int = 1) -> dict[str, Any]:
+    """What the page shows below the live timeline: it changes when the submission ends."""
+    private = owned_or_admin(s, who.user)
+    rows = task_rows(db, s)
+    by_condition: dict[str, list[float]] = {}
+    for row in rows:
+        by_condition.setdefault(row.condition, []).append(row.success_rate)
+    episodes, episode_total = _episodes(db, s, episode_page) if private else ([], 0)
+    chart_rows = [
+        TaskSuccess(
+            condition=r.condition,
+            env_id=r.env_id,
+            successes=r.successes,
+            episodes=r.episodes,
+            rate=r.success_rate,
+            low=r.ci_low,
+            high=r.ci_high,
+        )
+        for r in rows
+    ]
+    return {
+        "submission": s,
+        "private": private,
+        "tasks": rows,
+        "chart": success_bars(chart_rows) if rows else None,
+        "conditions": {name: sum(v) / len(v) for name, v in by_condition.items()},
+        "episodes": episodes,
+        "episode_total": episode_total,
+        "episode_page": episode_page,
+        "episode_pages": max(1, -(-episode_total // EPISODES_PER_PAGE)),
+        "show_seed": s.phase.public_seeds,
+        "videos": _videos(s) if private else [],
+        "ended_badly": s.state in ENDED_BADLY,
+        "final": s.state.final,
+    }
+
+
+@router.get("/submissions/{submission_id}")
+def submission_page(
+    submission_id: Id, request: Request, who: ViewerDep, db: DBDep, episodes: PageNo = 1
+) -> Response:
+    """The submission, its state timeline (kept live by /events) and, once ended, results."""
+    s = get_visible(db, submission_id, who.user)
+    transitions = db.scalars(
+        select(Transition).where(Transition.submission_id == s.id).order_by(Transition.id)
+    ).all()
+    return render(
+        request,
+        who,
+        "submission.html",
+        transitions=transitions,
+        last_transition=transitions[-1].id if transitions else 0,
+        **outcome(db, s, who, episodes),
+    )
+
+
+@router.get("/submissions/{submission_id}/outcome")
+def outcome_fragment(submission_id: Id, request: Request, who: ViewerDep, db: DBDep) -> Response:
+    """The part of the page below the timeline, fetched by the page's script when it ends."""
+    s = get_visible(db, submission_id, who.user)
+    return render(request, who, "_outcome.html", **outcome(db, s, who))
+
+
+@router.get("/submissions/{submission_id}/videos/{index}")
+def video(submission_id: Id, index: int, request: Request, who: ViewerDep, db: DBDep) -> Response:
+    """An episode video of the current attempt (owner and administrators)."""
+    s = db.get(Submission, submission_id)
+    if s is None or not owned_or_admin(s, who.user):
+        raise NotFound(f"no submission {submission_id}")
+    videos = _videos(s)
+    if not 0 <= index < len(videos):
+        raise NotFound(f"no video {index}")
+    root = services(request).settings.data_dir.resolve()
+    path = Path(str(videos[index].get("path", ""))).resolve()
+    if not path.is_relative_to(root) or not path.is_file():  # only files the server wrote
+        raise NotFound(f"no video {index}")
+    return FileResponse(path, media_type="video/mp4")
+
+
+# Actions ------------------------------------------------------------------------------------
+
+
+def _mine(db: DB, submission_id: int, user: User) -> Submission:
+    s = db.get(Submission, submission_id)
+    if s is None or not owned_or_admin(s, user):
+        raise NotFound(f"no submission {submission_id}")
+    return s
+
+
+def _admin(request: Request, who: Viewer) -> User:
+    user = signed_in(request, who)
+    if not user.is_admin:
+        raise Forbidden("admins only")
+    return user
+
+
+def _set_flag(db: DB, s: Submission, name: str, value: bool) -> None:
+    """Change what decides the leaderboard (as PATCH /api/v1/submissions/{id})."""
+    setattr(s, name, value)
+    db.flush()
+    refresh(db, s.phase_id, s.user_id)
+    db.commit()
+
+
+Flag = Annotated[str, Form(pattern="^(true|false)$")]
+
+
+@router.post("/submissions/{submission_id}/cancel")
+def cancel_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep) -> Response:
+    user = signed_in(request, who)
+    s = _mine(db, submission_id, user)
+    cancel(db, user, s)
+    db.commit()
+    return redirect(f"/submissions/{s.id}")
+
+
+@router.post("/submissions/{submission_id}/visibility")
+def visibility_action(
+    submission_id: Id, request: Request, who: PostedDep, db: DBDep, public: Flag
+) -> Response:
+    s = _mine(db, submission_id, signed_in(request, who))
+    _set_flag(db, s, "public", public == "true")
+    return redirect(f"/submissions/{s.id}")
+
+
+@router.post("/submissions/{submission_id}/rerun")
+def rerun_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep) -> Response:
+    admin = _admin(request, who)
+    s = _mine(db, submission_id, admin)
+    rerun(db, admin, s)
+    db.commit()
+    services(request).dispatcher.dispatch()
+    return redirect(f"/submissions/{s.id}")
+
+
+@router.post("/submissions/{submission_id}/hidden")
+def hidden_action(
+    submission_id: Id, request: Request, who: PostedDep, db: DBDep, hidden: Flag
+) -> Response:
+    s = _mine(db, submission_id, _admin(request, who))
+    _set_flag(db, s, "hidden", hidden == "true")
+    return redirect(f"/submissions/{s.id}")
+
+
+@router.post("/submissions/{submission_id}/baseline")
+def baseline_action(
+    submission_id: Id, request: Request, who: PostedDep, db: DBDep, baseline: Flag
+) -> Response:
+    s = _mine(db, submission_id, _admin(request, who))
+    _set_flag(db, s, "baseline", baseline == "true")
+    return redirect(f"/submissions/{s.id}")

@@ -1,0 +1,107 @@
+"""Helpers of the web tests: a logged-in browser-like client per user, forms with their CSRF
+token, and submissions run to a final state through the worker's reporting path."""
+
+from __future__ import annotations
+
+import re
+from datetime import UTC, datetime
+
+from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session
+
+from evaluator.results import (
+    ConditionResult,
+    EpisodeResult,
+    EvaluationResult,
+    SuiteRef,
+    Versions,
+    Video,
+    aggregate_task,
+)
+from server.ingest import report_final, report_state
+from server.models import Challenge, State, Submission, User
+from tests.server.conftest import PASSWORD, queue_submission
+
+CSRF = re.compile(r'name="csrf_token" value="([^"]*)"')
+
+
+def csrf_of(html: str) -> str:
+    """The CSRF token the page's forms carry."""
+    found = CSRF.search(html)
+    assert found, "the page has no form with a CSRF token"
+    return found.group(1)
+
+
+def browser(client: TestClient, username: str | None = None) -> TestClient:
+    """A separate cookie jar on the same app, logged in through the login form if named."""
+    other = TestClient(client.app, base_url="http://testserver", follow_redirects=False)
+    if username is not None:
+        token = csrf_of(other.get("/login").text)
+        r = other.post(
+            "/login", data={"login": username, "password": PASSWORD, "csrf_token": token}
+        )
+        assert r.status_code == 303, r.text
+    return other
+
+
+def result_doc(
+    successes: list[bool], *, conditions: tuple[str, ...] = ("nominal", "obs_noise")
+) -> EvaluationResult:
+    episodes = [
+        EpisodeResult(
+            index=i,
+            seed=1000 + i,
+            success_once=ok,
+            success_at_end=ok,
+            steps=10,
+            episode_return=1.0,
+            wall_time_s=0.1,
+        )
+        for i, ok in enumerate(successes)
+    ]
+    task = aggregate_task("PickCube-v1", len(episodes), episodes)
+    now = datetime.now(UTC)
+    return EvaluationResult(
+        suite=SuiteRef(name="server-tiny", version=1, sha256="0" * 64),
+        phase="dev",
+        policy="test",
+        versions=Versions(manieval="0", mani_skill="0", sapien="0", torch="0", python="3"),
+        started_at=now,
+        finished_at=now,
+        status="completed",
+        score=task.success_rate,
+        conditions=[
+            ConditionResult(name=name, params={"kind": name}, score=task.success_rate, tasks=[task])
+            for name in conditions
+        ],
+    )
+
+
+def finished(
+    db: Session,
+    user: User,
+    challenge: Challenge,
+    successes: list[bool],
+    *,
+    state: State = State.SUCCEEDED,
+    reason: str = "done",
+    log_tail: str = "",
+    public: bool = True,
+    description: str = "",
+    videos: list[Video] | None = None,
+) -> Submission:
+    """A submission run to `state` through the worker's reporting path."""
+    s = queue_submission(db, user, challenge)
+    s.public = public
+    s.description = description
+    db.flush()
+    assert report_state(db, s.id, 1, State.LAUNCHING, "starting")
+    assert report_state(db, s.id, 1, State.RUNNING, "evaluating")
+    doc = result_doc(successes)
+    if videos:
+        doc = doc.model_copy(update={"videos": videos})
+    result = doc if state == State.SUCCEEDED else None
+    assert report_final(db, s.id, 1, state, reason, result=result, log_tail=log_tail)
+    db.commit()
+    db.refresh(s)
+    return s

@@ -1,0 +1,66 @@
+"""What `create_app` wires around the pages: /metrics (optionally behind a token, HTTP metrics
+by route template), /readyz with the Celery broker, and JSON errors for programs."""
+
+from __future__ import annotations
+
+from fastapi.testclient import TestClient
+from pydantic import SecretStr
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.app import create_app
+from server.models import Challenge
+from server.ratelimit import MemoryRateLimiter
+from server.settings import Settings
+from tests.server.conftest import RecordingQueue, fake_resolve_for
+
+
+def app_client(
+    settings: Settings, sessions: sessionmaker[Session], **changes: object
+) -> TestClient:
+    changed = settings.model_copy(update=changes)
+    app = create_app(
+        changed,
+        sessions=sessions,
+        work=RecordingQueue(),
+        resolve=fake_resolve_for(changed),
+        limiter=MemoryRateLimiter(),
+        background=False,
+    )
+    return TestClient(app)
+
+
+def test_metrics_count_requests_by_route_template_and_report_the_queue(
+    client: TestClient, tiny: Challenge
+) -> None:
+    assert client.get("/challenges/server-tiny").status_code == 200
+    assert client.get("/submissions/12345").status_code == 404
+    body = client.get("/metrics")
+    assert body.headers["content-type"].startswith("text/plain")
+    text = body.text
+    assert "manieval_queue_depth" in text
+    assert 'route="/challenges/{slug}",status="2xx"' in text
+    assert 'route="/submissions/{submission_id}",status="4xx"' in text
+    assert "12345" not in text  # raw paths never become labels
+
+
+def test_metrics_need_the_token_when_one_is_set(
+    settings: Settings, sessions: sessionmaker[Session]
+) -> None:
+    secured = app_client(settings, sessions, metrics_token=SecretStr("m" * 40))
+    refused = secured.get("/metrics")
+    assert refused.status_code == 401
+    assert refused.json()["error"]["code"] == "unauthorized"  # JSON, for programs
+    assert secured.get("/metrics", headers={"Authorization": "Bearer wrong"}).status_code == 401
+    ok = secured.get("/metrics", headers={"Authorization": "Bearer " + "m" * 40})
+    assert ok.status_code == 200
+
+
+def test_readiness_reports_an_unreachable_celery_broker(
+    settings: Settings, sessions: sessionmaker[Session]
+) -> None:
+    assert app_client(settings, sessions).get("/readyz").json() == {"status": "ok"}
+    broken = app_client(settings, sessions, queue="celery", broker_url="redis://127.0.0.1:1/0")
+    r = broken.get("/readyz")
+    assert r.status_code == 503
+    assert r.json()["status"] == "unavailable"
+    assert r.json()["broker"]

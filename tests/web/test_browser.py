@@ -1,0 +1,210 @@
+"""A participant's whole journey in a real browser (Debian's Chromium through Playwright)
+against a real server on a free port: register, create a token, submit through the form,
+watch the state reach `succeeded` live, find the row on the leaderboard, open the submission.
+
+Screenshots of each page are kept under $MANIEVAL_ARTEFACTS/web (or the test's tmp dir).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+import uvicorn
+
+from server.app import create_app, inline_queue
+from server.dispatch import InlineQueue
+from server.settings import Settings
+from tests.server.conftest import embedded_database
+
+pytestmark = pytest.mark.sim
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+PASSWORD = "a sturdy passphrase for tests"
+EVALUATION_TIMEOUT_MS = 240_000  # a generous bound on a tiny evaluation, never asserted on
+
+
+def require_chromium() -> None:
+    if CHROMIUM.exists():
+        return
+    message = f"Debian's Chromium is not installed at {CHROMIUM} (apt-get install chromium)"
+    if os.environ.get("CI") == "true":
+        pytest.fail(message)
+    pytest.skip(message)
+
+
+@dataclass
+class GatedQueue:
+    """Holds the evaluation back until the test has the submission page open, so that every
+    state change happens while the page is watching."""
+
+    inner: InlineQueue
+    held: list[tuple[int, int]] = field(default_factory=list)
+    opened: bool = False
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def enqueue(self, submission_id: int, attempt: int) -> None:
+        with self.lock:
+            if not self.opened:
+                self.held.append((submission_id, attempt))
+                return
+        self.inner.enqueue(submission_id, attempt)
+
+    def release(self) -> None:
+        with self.lock:
+            self.opened = True
+            held, self.held = self.held, []
+        for message in held:
+            self.inner.enqueue(*message)
+
+
+@dataclass
+class Server:
+    url: str
+    gate: GatedQueue
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[Server]:
+    settings = Settings(
+        dev_mode=True, data_dir=tmp_path / "data", cookie_secure=False, allow_local_policies=True
+    )
+    sessions = embedded_database(settings, quota_concurrent=3)
+    inline = inline_queue(sessions, settings)
+    gate = GatedQueue(inline)
+    app = create_app(settings, sessions=sessions, work=gate)
+    port = free_port()
+    # No log_config or log_level: uvicorn would reconfigure this process's logging for the
+    # tests that run after this one.
+    config = uvicorn.Config(
+        app, host="127.0.0.1", port=port, log_config=None, timeout_graceful_shutdown=5
+    )
+    running = uvicorn.Server(config)
+    thread = threading.Thread(target=running.run, name="uvicorn", daemon=True)
+    inline.start()
+    thread.start()
+    while not running.started:
+        assert thread.is_alive(), "the server did not start"
+        time.sleep(0.02)
+    try:
+        yield Server(url=f"http://127.0.0.1:{port}", gate=gate)
+    finally:
+        running.should_exit = True
+        thread.join(timeout=30)
+        inline.stop(timeout=30)
+
+
+@pytest.fixture
+def artefacts(tmp_path: Path) -> Path:
+    root = os.environ.get("MANIEVAL_ARTEFACTS")
+    path = Path(root) / "web" if root else tmp_path / "screenshots"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def test_register_token_submit_follow_live_and_find_it_on_the_leaderboard(
+    server: Server, artefacts: Path
+) -> None:
+    require_chromium()
+    from playwright.sync_api import expect, sync_playwright
+
+    problems: list[str] = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        context = browser.new_context(viewport={"width": 1280, "height": 900})
+        page = context.new_page()
+        page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda exc: problems.append(str(exc)))
+
+        def shot(name: str) -> None:
+            page.screenshot(path=str(artefacts / f"{name}.png"), full_page=True)
+
+        page.goto(server.url)
+        expect(page.get_by_role("heading", name="Challenges", exact=True)).to_be_visible()
+        page.keyboard.press("Tab")  # the first stop is the skip link, and it works
+        expect(page.get_by_role("link", name="Skip to content")).to_be_focused()
+        page.keyboard.press("Enter")
+        expect(page.locator("main")).to_be_focused()
+        shot("home")
+
+        page.get_by_role("link", name="Register").click()
+        page.get_by_label("Username").fill("tester")
+        page.get_by_label("Email").fill("tester@example.org")
+        page.get_by_label("Password").fill(PASSWORD)
+        shot("register")
+        page.get_by_role("button", name="Create account").click()
+        expect(page).to_have_url(re.compile(r"/account$"))
+
+        page.get_by_label("Token name").fill("laptop")
+        page.get_by_role("button", name="Create token").click()
+        token = page.locator("#new-token-value")
+        expect(token).to_have_text(re.compile(r"^mev_[a-z2-7]{8}_[A-Za-z0-9_-]{43}$"))
+        plaintext = token.inner_text()
+        shot("account-new-token")
+        page.goto(f"{server.url}/account")
+        expect(page.get_by_role("rowheader", name="laptop")).to_be_visible()
+        assert plaintext not in page.content()  # shown once
+
+        page.goto(f"{server.url}/challenges/server-tiny")
+        shot("challenge")
+        page.get_by_role("link", name="Submit a policy").click()
+        page.get_by_label("Image reference").fill("local:scripted")
+        page.get_by_label("Description (optional)").fill("scripted example, from the browser")
+        shot("submit")
+        page.get_by_role("button", name="Submit").click()
+        expect(page).to_have_url(re.compile(r"/submissions/\d+$"))
+        submission_url = page.url
+        expect(page.locator("#current-state")).to_have_text("queued")
+        expect(page.locator("#live-status")).to_be_visible()  # the event stream is open
+        page.evaluate("window.__stillTheSamePage = true")
+        server.gate.release()
+
+        expect(page.locator("#current-state")).to_have_text(
+            "succeeded", timeout=EVALUATION_TIMEOUT_MS
+        )
+        timeline = page.locator("#timeline .state")
+        expect(timeline).to_have_text(["queued", "launching", "running", "succeeded"])
+        expect(page.get_by_role("heading", name="Results")).to_be_visible()
+        assert page.evaluate("window.__stillTheSamePage") is True  # no reload
+        shot("submission-live-succeeded")
+
+        page.get_by_role("link", name="Server Tiny").first.click()
+        page.get_by_role("link", name="Full leaderboard").click()
+        row = page.locator("#board tbody tr", has_text="tester")
+        expect(row).to_have_count(1)
+        expect(row.locator(".ibar")).to_have_count(1)
+        shot("leaderboard")
+        row.get_by_role("link", name="tester").click()
+        expect(page).to_have_url(submission_url)
+        expect(page.get_by_role("heading", name="Episodes")).to_be_visible()
+        shot("submission")
+
+        phone = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True)
+        small = phone.new_page()
+        small.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+        small.on("pageerror", lambda exc: problems.append(str(exc)))
+        small.goto(f"{server.url}/challenges/server-tiny/leaderboard")
+        small.screenshot(path=str(artefacts / "leaderboard-phone.png"), full_page=True)
+        browser.close()
+    assert problems == [], problems

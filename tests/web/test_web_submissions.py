@@ -1,0 +1,169 @@
+"""A submission's page: who sees what (404 as the API), results, failures, videos, actions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session
+
+from evaluator.results import Video
+from server.models import Challenge, State, Submission
+from server.settings import Settings
+from tests.server.conftest import RecordingQueue, make_user
+from tests.web.helpers import browser, csrf_of, finished
+
+SECRET = "PRIVATE-LOG-LINE-7c1"
+
+
+@pytest.fixture
+def people(client: TestClient, db: Session) -> dict[str, TestClient]:
+    for name in ("alice", "bob"):
+        make_user(db, name)
+    make_user(db, "judge", admin=True)
+    return {name: browser(client, name) for name in ("alice", "bob", "judge")} | {
+        "anonymous": browser(client)
+    }
+
+
+def alice_s(db: Session, challenge: Challenge, **options: object) -> Submission:
+    from server.models import User
+
+    alice = db.query(User).filter_by(username="alice").one()
+    return finished(db, alice, challenge, [True, False], log_tail=SECRET, **options)  # type: ignore[arg-type]
+
+
+def test_private_and_hidden_submissions_are_404_to_others_like_the_api(
+    client: TestClient, db: Session, tiny: Challenge, people: dict[str, TestClient]
+) -> None:
+    private = alice_s(db, tiny, public=False)
+    hidden = alice_s(db, tiny)
+    hidden.hidden = True
+    db.commit()
+    for s in (private, hidden):
+        for path in ("", "/outcome", "/events", "/videos/0"):
+            for who in ("bob", "anonymous"):
+                r = people[who].get(f"/submissions/{s.id}{path}")
+                assert r.status_code == 404, (who, path)
+                assert SECRET not in r.text
+            api = client.get(f"/api/v1/submissions/{s.id}")
+            assert api.status_code == 404
+        assert people["alice"].get(f"/submissions/{s.id}").status_code == 200
+        assert people["judge"].get(f"/submissions/{s.id}").status_code == 200
+
+
+def test_results_show_intervals_and_the_log_and_episodes_only_to_owner_and_admins(
+    db: Session, tiny: Challenge, people: dict[str, TestClient]
+) -> None:
+    s = alice_s(db, tiny, description="two tries")
+    public_view = people["bob"].get(f"/submissions/{s.id}").text
+    assert "Results" in public_view
+    assert 'class="ibar"' in public_view
+    assert "Success rate per task, with 95% intervals" in public_view  # the chart
+    assert "nominal</strong> 0.500" in public_view
+    assert SECRET not in public_view
+    assert "episodes-heading" not in public_view
+    for who in ("alice", "judge"):
+        html = people[who].get(f"/submissions/{s.id}").text
+        assert SECRET in html
+        assert html.count("<tr><td>nominal</td><td>PickCube-v1</td>") == 2  # the episodes
+        assert ">1000</td>" in html  # public-phase seeds are shown
+
+
+def test_a_failed_submission_says_why(
+    db: Session, tiny: Challenge, people: dict[str, TestClient]
+) -> None:
+    s = alice_s(db, tiny, state=State.FAILED, reason="the policy exited with exit code 3")
+    html = people["bob"].get(f"/submissions/{s.id}").text
+    assert "Why it ended failed" in html
+    assert "the policy exited with exit code 3" in html
+    assert SECRET not in html
+
+
+def test_videos_are_served_to_the_owner_from_the_data_directory_only(
+    db: Session, tiny: Challenge, people: dict[str, TestClient], settings: Settings
+) -> None:
+    from server.models import User
+
+    clip = settings.data_dir / "videos" / "nominal-PickCube-v1-ep0.mp4"
+    clip.parent.mkdir(parents=True)
+    clip.write_bytes(b"\x00\x00\x00\x18ftypmp42")
+    outside = Path("/etc/hostname")
+    alice = db.query(User).filter_by(username="alice").one()
+    videos = [
+        Video(env_id="PickCube-v1", condition="nominal", episode=0, path=str(clip)),
+        Video(env_id="PickCube-v1", condition="nominal", episode=1, path=str(outside)),
+    ]
+    s = finished(db, alice, tiny, [True], videos=videos)
+    html = people["alice"].get(f"/submissions/{s.id}").text
+    assert f'<video controls preload="metadata" src="/submissions/{s.id}/videos/0">' in html
+    r = people["alice"].get(f"/submissions/{s.id}/videos/0")
+    assert r.status_code == 200
+    assert r.headers["content-type"] == "video/mp4"
+    assert people["alice"].get(f"/submissions/{s.id}/videos/1").status_code == 404
+    assert people["alice"].get(f"/submissions/{s.id}/videos/9").status_code == 404
+    assert people["bob"].get(f"/submissions/{s.id}/videos/0").status_code == 404
+    assert "<video" not in people["bob"].get(f"/submissions/{s.id}").text
+
+
+def act(client: TestClient, s: Submission, action: str, **fields: str) -> int:
+    page = client.get(f"/submissions/{s.id}").text
+    token = csrf_of(page) if "csrf_token" in page else ""
+    return client.post(
+        f"/submissions/{s.id}/{action}", data={"csrf_token": token, **fields}
+    ).status_code
+
+
+def test_only_admins_rerun_hide_and_flag_baselines(
+    client: TestClient,
+    db: Session,
+    tiny: Challenge,
+    people: dict[str, TestClient],
+    work: RecordingQueue,
+) -> None:
+    s = alice_s(db, tiny)
+    owner_page = people["alice"].get(f"/submissions/{s.id}").text
+    assert "Re-run" not in owner_page
+    assert "Flag as baseline" not in owner_page
+    for action, fields in (
+        ("rerun", {}),
+        ("hidden", {"hidden": "true"}),
+        ("baseline", {"baseline": "true"}),
+    ):
+        assert act(people["alice"], s, action, **fields) == 403
+        assert act(people["bob"], s, action, **fields) == 403
+    admin_page = people["judge"].get(f"/submissions/{s.id}").text
+    assert "Re-run" in admin_page
+    assert "Flag as baseline" in admin_page
+    assert "Hide" in admin_page
+    board = "/challenges/server-tiny/leaderboard?phase=dev"
+    assert act(people["judge"], s, "baseline", baseline="true") == 303
+    assert '<span class="badge">baseline</span>' in client.get(board).text
+    assert act(people["judge"], s, "hidden", hidden="true") == 303
+    assert f"/submissions/{s.id}" not in client.get(board).text
+    assert people["bob"].get(f"/submissions/{s.id}").status_code == 404
+    assert act(people["judge"], s, "rerun") == 303
+    db.refresh(s)
+    assert (s.state, s.attempt) == (State.QUEUED, 2)
+    assert work.sent[-1] == (s.id, 2)
+    assert act(people["judge"], s, "rerun") == 409  # it has not ended
+
+
+def test_the_owner_cancels_and_changes_visibility(
+    client: TestClient, db: Session, tiny: Challenge, people: dict[str, TestClient]
+) -> None:
+    from server.models import User
+    from tests.server.conftest import queue_submission
+
+    alice = db.query(User).filter_by(username="alice").one()
+    s = queue_submission(db, alice, tiny)
+    db.commit()
+    assert act(people["bob"], s, "cancel") == 404
+    assert act(people["alice"], s, "visibility", public="false") == 303
+    assert people["bob"].get(f"/submissions/{s.id}").status_code == 404
+    assert act(people["alice"], s, "cancel") == 303
+    db.refresh(s)
+    assert s.state == State.CANCELLED
+    assert not s.public
+    assert "cancelled by its owner" in people["alice"].get(f"/submissions/{s.id}").text
