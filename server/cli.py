@@ -42,6 +42,13 @@ def _sessions(s: Settings):  # type: ignore[no-untyped-def]
 def serve(
     host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
     port: Annotated[int, typer.Option(min=1, max=65535)] = 8000,
+    migrate: Annotated[
+        bool,
+        typer.Option(
+            help="Bring the schema up to date first. With --no-migrate (several replicas, a "
+            "migration Job) the server refuses to start on a schema that is not current."
+        ),
+    ] = True,
 ) -> None:
     """Run the API with its embedded worker (migrating the database first)."""
     import uvicorn
@@ -51,7 +58,16 @@ def serve(
 
     s = settings()
     configure_logging(s.log_format, s.log_level)
-    sessions = _sessions(s)
+    if migrate:
+        sessions = _sessions(s)
+    else:
+        from server.db import make_engine, schema_problem, session_factory
+
+        problem = schema_problem(s.resolved_database_url)
+        if problem is not None:
+            console.print(f"[red]cannot start:[/] {problem}")
+            raise typer.Exit(3)
+        sessions = session_factory(make_engine(s.resolved_database_url))
     console.print(f"ManiEval on http://{host}:{port}  (data: {s.data_dir}, docs: /docs)")
     app = create_app(s, sessions=sessions)
     # Open live streams (server-sent events) must not hold a Ctrl-C for long.

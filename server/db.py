@@ -61,3 +61,23 @@ def upgrade(url: str, revision: str = "head") -> None:
     from alembic import command
 
     command.upgrade(alembic_config(url), revision)
+
+
+def schema_problem(url: str) -> str | None:
+    """Why the database's schema is not the one this code needs (None when it is)."""
+    from alembic.runtime.migration import MigrationContext
+    from alembic.script import ScriptDirectory
+
+    heads = set(ScriptDirectory.from_config(alembic_config(url)).get_heads())
+    engine = create_engine(url)
+    try:
+        with engine.connect() as connection:
+            current = set(MigrationContext.configure(connection).get_current_heads())
+    finally:
+        engine.dispose()
+    if current == heads:
+        return None
+    return (
+        f"the database schema is at {', '.join(sorted(current)) or 'nothing'}, this version "
+        f"needs {', '.join(sorted(heads))}: run `manieval db upgrade` (the migration Job) first"
+    )
