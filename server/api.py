@@ -23,9 +23,9 @@ from server.deps import (
     limit,
     services,
 )
-from server.errors import ERROR_RESPONSES, Forbidden, NotFound, Unauthorized
+from server.errors import ERROR_RESPONSES, NotFound, Unauthorized
 from server.ingest import task_rows
-from server.leaderboard import PageKey, Rendered, refresh
+from server.leaderboard import PageKey, Rendered
 from server.models import (
     ApiToken,
     Challenge,
@@ -67,6 +67,7 @@ from server.schemas import (
 )
 from server.submissions import (
     cancel,
+    edit,
     get_visible,
     owned_or_admin,
     quota_use,
@@ -553,13 +554,14 @@ def update_submission(
 ) -> SubmissionOut:
     """Owners change visibility and description; admins also hide and flag baselines."""
     s = _owned(db, submission_id, user)
-    if (body.hidden is not None or body.baseline is not None) and not user.is_admin:
-        raise Forbidden("only admins can hide submissions or flag baselines")
-    for name in ("public", "hidden", "baseline", "description"):
-        value = getattr(body, name)
-        if value is not None:
-            setattr(s, name, value)
-    db.flush()
-    refresh(db, s.phase_id, s.user_id)
+    edit(
+        db,
+        user,
+        s,
+        public=body.public,
+        hidden=body.hidden,
+        baseline=body.baseline,
+        description=body.description,
+    )
     db.commit()
     return _submission_out(s)

@@ -266,6 +266,37 @@ def cancel(db: DB, user: User, submission: Submission, *, now: datetime | None =
     db.refresh(submission)
 
 
+def edit(
+    db: DB,
+    user: User,
+    submission: Submission,
+    *,
+    public: bool | None = None,
+    hidden: bool | None = None,
+    baseline: bool | None = None,
+    description: str | None = None,
+) -> None:
+    """The owner changes visibility and description; admins also hide and flag baselines.
+    The phase's leaderboard is recomputed for the submission's owner."""
+    from server.leaderboard import refresh
+
+    if not owned_or_admin(submission, user):
+        raise NotFound(f"no submission {submission.id}")
+    if (hidden is not None or baseline is not None) and not user.is_admin:
+        raise Forbidden("only admins can hide submissions or flag baselines")
+    changes: dict[str, bool | str | None] = {
+        "public": public,
+        "hidden": hidden,
+        "baseline": baseline,
+        "description": description,
+    }
+    for name, value in changes.items():
+        if value is not None:
+            setattr(submission, name, value)
+    db.flush()
+    refresh(db, submission.phase_id, submission.user_id)
+
+
 def rerun(db: DB, admin: User, submission: Submission, *, now: datetime | None = None) -> None:
     """An admin runs an ended submission again, as a new attempt with its own results."""
     if not admin.is_admin:

@@ -19,7 +19,6 @@ from sqlalchemy.orm import Session as DB
 from server.deps import DBDep, services
 from server.errors import Forbidden, NotFound
 from server.ingest import task_rows
-from server.leaderboard import refresh
 from server.models import (
     EpisodeResultRow,
     State,
@@ -28,7 +27,7 @@ from server.models import (
     Transition,
     User,
 )
-from server.submissions import cancel, get_visible, owned_or_admin, rerun
+from server.submissions import cancel, edit, get_visible, owned_or_admin, rerun
 from server.web_charts import TaskSuccess, success_bars
 from server.web_support import Id, PostedDep, Viewer, ViewerDep, redirect, render, signed_in
 
@@ -161,14 +160,6 @@ def _admin(request: Request, who: Viewer) -> User:
     return user
 
 
-def _set_flag(db: DB, s: Submission, name: str, value: bool) -> None:
-    """Change what decides the leaderboard (as PATCH /api/v1/submissions/{id})."""
-    setattr(s, name, value)
-    db.flush()
-    refresh(db, s.phase_id, s.user_id)
-    db.commit()
-
-
 Flag = Annotated[str, Form(pattern="^(true|false)$")]
 
 
@@ -185,8 +176,10 @@ def cancel_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep
 def visibility_action(
     submission_id: Id, request: Request, who: PostedDep, db: DBDep, public: Flag
 ) -> Response:
-    s = _mine(db, submission_id, signed_in(request, who))
-    _set_flag(db, s, "public", public == "true")
+    user = signed_in(request, who)
+    s = _mine(db, submission_id, user)
+    edit(db, user, s, public=public == "true")
+    db.commit()
     return redirect(f"/submissions/{s.id}")
 
 
@@ -204,8 +197,10 @@ def rerun_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep)
 def hidden_action(
     submission_id: Id, request: Request, who: PostedDep, db: DBDep, hidden: Flag
 ) -> Response:
-    s = _mine(db, submission_id, _admin(request, who))
-    _set_flag(db, s, "hidden", hidden == "true")
+    admin = _admin(request, who)
+    s = _mine(db, submission_id, admin)
+    edit(db, admin, s, hidden=hidden == "true")
+    db.commit()
     return redirect(f"/submissions/{s.id}")
 
 
@@ -213,6 +208,8 @@ def hidden_action(
 def baseline_action(
     submission_id: Id, request: Request, who: PostedDep, db: DBDep, baseline: Flag
 ) -> Response:
-    s = _mine(db, submission_id, _admin(request, who))
-    _set_flag(db, s, "baseline", baseline == "true")
+    admin = _admin(request, who)
+    s = _mine(db, submission_id, admin)
+    edit(db, admin, s, baseline=baseline == "true")
+    db.commit()
     return redirect(f"/submissions/{s.id}")
