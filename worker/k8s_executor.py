@@ -13,6 +13,7 @@ import random
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime, timedelta
 from typing import Any, Literal, TypeVar
 
 import urllib3
@@ -62,6 +63,7 @@ class JobRef:
     attempt: int
     status: JobStatus
     terminating: bool
+    created: datetime | None = None
 
 
 @dataclass(frozen=True)
@@ -128,6 +130,8 @@ class Backoff:
 
 
 T = TypeVar("T")
+ORPHAN_GRACE_S = 120.0
+MAX_LOG_BYTES = 16 * 1024 * 1024  # an evaluator's log holds the result document: keep it whole
 
 
 @dataclass
@@ -261,30 +265,46 @@ class KubernetesExecutor:
             if not token:
                 return refs
 
-    def delete_orphans(self, keep: set[tuple[int, int]]) -> list[str]:
-        """Delete Jobs of attempts not in `keep` (submission id, attempt); their names."""
+    def delete_orphans(
+        self, keep: set[tuple[int, int]], *, grace_s: float = ORPHAN_GRACE_S
+    ) -> list[str]:
+        """Delete Jobs of attempts not in `keep` (submission id, attempt); their names.
+
+        Jobs younger than `grace_s` stay: a worker may have claimed its attempt and created the
+        Job after the caller read which attempts are active."""
         deleted = []
+        young = datetime.now(UTC) - timedelta(seconds=grace_s)
         for ref in self.list_jobs():
             if (ref.submission_id, ref.attempt) in keep or ref.terminating:
+                continue
+            if ref.created is None or ref.created > young:
                 continue
             if self.cancel(ref.submission_id, ref.attempt):
                 deleted.append(ref.name)
         return deleted
 
     def _log(self, pod: V1Pod, container: str, tail_lines: int) -> str:
+        """A container's log as text. Read raw and decoded leniently: a policy may print any
+        bytes, and the client's own strict decoding would raise on them."""
         name = pod.metadata.name if pod.metadata and pod.metadata.name else ""
         try:
-            return self._call(
+            response: Any = self._call(  # raw: an urllib3 response, not the annotated str
                 self._core.read_namespaced_pod_log,
                 name,
                 self.namespace,
                 container=container,
                 tail_lines=tail_lines or None,
+                limit_bytes=MAX_LOG_BYTES,
+                _preload_content=False,
             )
         except KubernetesError as exc:
             if exc.status == 400:  # the container has not started: no log yet
                 return ""
             raise
+        try:
+            return bytes(response.data).decode("utf-8", errors="replace")
+        finally:
+            _release(response)
 
     def _call(self, method: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Call the API; retry 429 and 5xx with backoff, raise KubernetesError otherwise."""
@@ -301,6 +321,8 @@ class KubernetesExecutor:
                 raise KubernetesError(_message(exc), status=status) from None
             except urllib3.exceptions.HTTPError as exc:
                 raise KubernetesError(f"the API server cannot be reached: {exc}") from None
+            except ValueError as exc:  # an answer the client cannot read (bad JSON, a model)
+                raise KubernetesError(f"unreadable answer from the API server: {exc}") from None
 
 
 def _retryable(status: int | None) -> bool:
@@ -357,6 +379,7 @@ def _job_ref(job: V1Job) -> JobRef | None:
         attempt=int(attempt),
         status=job_status(job),
         terminating=meta.deletion_timestamp is not None,
+        created=meta.creation_timestamp,
     )
 
 

@@ -28,7 +28,7 @@ from evaluator.suite import Suite
 from server.ingest import report_progress
 from server.models import State, utcnow
 from server.settings import Settings
-from worker.k8s_executor import JobStatus, KubernetesError, KubernetesExecutor
+from worker.k8s_executor import JobConflict, JobStatus, KubernetesError, KubernetesExecutor
 from worker.kubernetes import (
     EVALUATOR,
     POLICY,
@@ -128,9 +128,12 @@ def run_as_job(
         executor = kubernetes_executor(settings)
     except Exception as exc:  # our configuration: error, with the reason
         return finish(sessions, submission_id, attempt, State.ERROR, f"cannot run: {exc}")
+    watch = _Watch(sessions, settings, executor, spec, plan, stop or threading.Event())
     try:
-        watch = _Watch(sessions, settings, executor, spec, plan, stop or threading.Event())
         return watch.run()
+    except Exception as exc:  # a bug of ours: still a final state with a reason, and no Job
+        log.exception("watching Job %s failed", spec.name)
+        return watch.end(State.ERROR, f"the worker failed: {type(exc).__name__}: {exc}")
     finally:
         executor.close()
 
@@ -157,8 +160,11 @@ class _Watch:
             return final_state(self.sessions, self.spec.submission_id)
         try:
             started = self.executor.start(self.spec)
+        except JobConflict as exc:  # not ours to delete: another deployment's, or being deleted
+            reason = f"cannot create the evaluation Job: {exc}"
+            return finish(self.sessions, *self.ids, State.ERROR, reason)
         except KubernetesError as exc:
-            return self._end(State.ERROR, f"cannot create the evaluation Job: {exc}")
+            return self.end(State.ERROR, f"cannot create the evaluation Job: {exc}")
         if started.adopted:
             log.info("adopted the existing Job %s", started.name)
         return self._watch()
@@ -170,6 +176,7 @@ class _Watch:
                 status = self.executor.status(*self.ids)
                 if status.phase in ("pending", "running"):
                     ended = self._look(status)
+                    outage_since = None
                     if ended is not None:
                         return ended
                     continue
@@ -178,7 +185,7 @@ class _Watch:
                 outage_since = outage_since if outage_since is not None else now
                 log.warning("Job %s: the API server failed: %s", self.spec.name, exc)
                 if now - outage_since > API_OUTAGE_S:
-                    return self._end(State.ERROR, f"the Kubernetes API failed for too long: {exc}")
+                    return self.end(State.ERROR, f"the Kubernetes API failed for too long: {exc}")
                 if not self._beat({"phase": "unknown"}):
                     return self._cancelled()
                 continue
@@ -189,7 +196,7 @@ class _Watch:
         """One look at a live Job: stuck pods end it, else report progress (the heartbeat)."""
         view = self.executor.pods(*self.ids)
         if view.stuck is not None:
-            return self._end(State.ERROR, f"the evaluation could not start: {view.stuck}")
+            return self.end(State.ERROR, f"the evaluation could not start: {view.stuck}")
         progress: dict[str, Any] = {"phase": status.phase, "done": 0}
         if view.evaluating:
             progress = progress | self._progress()
@@ -215,31 +222,34 @@ class _Watch:
         if status.phase == "succeeded":
             return self._collect()
         if status.phase == "deadline_exceeded":
-            return self._end(State.TIMED_OUT, "the evaluation exceeded its time budget")
+            return self.end(State.TIMED_OUT, "the evaluation exceeded its time budget")
         if status.phase == "missing":
-            return self._end(State.ERROR, f"the evaluation's Job {self.spec.name} disappeared")
-        return self._end(State.ERROR, f"the evaluator failed ({status.reason})")
+            return self.end(State.ERROR, f"the evaluation's Job {self.spec.name} disappeared")
+        return self.end(State.ERROR, f"the evaluator failed ({status.reason})")
 
     def _collect(self) -> State | None:
         try:
             logs = self.executor.collect(*self.ids, container=EVALUATOR)
             result = result_from_logs(self.plan, logs)
-            view = self.executor.pods(*self.ids)
-            policy_log = self._policy_log()
         except (KubernetesError, JobOutputError) as exc:
-            return self._end(State.ERROR, f"the evaluation's result could not be read: {exc}")
-        state = conclude(
-            self.sessions, *self.ids, result, log_tail=policy_log, detail=view.policy_ended
-        )
+            return self.end(State.ERROR, f"the evaluation's result could not be read: {exc}")
+        policy_ended, policy_log = self._policy_side()
+        state = conclude(self.sessions, *self.ids, result, log_tail=policy_log, detail=policy_ended)
         self._delete()
         return state
 
-    def _policy_log(self) -> str:
-        logs = self.executor.collect(*self.ids, container=POLICY, tail_lines=POLICY_LOG_LINES)
+    def _policy_side(self) -> tuple[str | None, str]:
+        """How the policy container ended and its log tail: extras that never cost a result."""
+        try:
+            view = self.executor.pods(*self.ids)
+            logs = self.executor.collect(*self.ids, container=POLICY, tail_lines=POLICY_LOG_LINES)
+        except KubernetesError as exc:
+            log.warning("Job %s: the policy's side could not be read: %s", self.spec.name, exc)
+            return None, ""
         text = "\n".join(log.rstrip("\n") for log in logs if log)
-        return text[-LOG_TAIL_BYTES:]
+        return view.policy_ended, text[-LOG_TAIL_BYTES:]
 
-    def _end(self, state: State, reason: str) -> State | None:
+    def end(self, state: State, reason: str) -> State | None:
         log.info("Job %s: %s: %s", self.spec.name, state.value, reason)
         ended = finish(self.sessions, *self.ids, state, reason)
         self._delete()

@@ -406,7 +406,10 @@ class ApiServerDouble:
         tail = query.get("tailLines", [None])[0]
         if tail is not None:
             text = "".join(text.splitlines(keepends=True)[-int(tail) :])
-        return 200, _Text(text)
+        answer = _Text(text)
+        limit = query.get("limitBytes", [None])[0]
+        answer.limit = int(limit) if limit is not None else None
+        return 200, answer
 
     def _list(
         self, kind: str, api_version: str, objects: list[Json], query: dict[str, list[str]]
@@ -510,7 +513,9 @@ class ApiServerDouble:
 
 
 class _Text(str):
-    """A plain-text answer (pod logs)."""
+    """A plain-text answer (pod logs), cut at `limit` bytes (limitBytes) when set."""
+
+    limit: int | None = None
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -524,8 +529,9 @@ class _Handler(BaseHTTPRequestHandler):
         raw = self.rfile.read(length) if length else b""
         body = json.loads(raw) if raw else None
         (status, payload), retry_after = self.server_double.handle(self.command, self.path, body)
-        if isinstance(payload, _Text):
-            data, kind = payload.encode(), "text/plain; charset=utf-8"
+        if isinstance(payload, _Text):  # lone surrogates stand for bytes that are not UTF-8
+            data, kind = payload.encode("utf-8", "surrogateescape"), "text/plain; charset=utf-8"
+            data = data[: payload.limit] if payload.limit is not None else data
         else:
             data, kind = json.dumps(payload).encode(), "application/json"
         self.send_response(status)

@@ -355,3 +355,78 @@ def test_a_suite_that_asks_for_shards_gets_an_indexed_job(
     assert (spec["completionMode"], spec["completions"], spec["parallelism"]) == ("Indexed", 3, 3)
     apiserver.fail(NAMESPACE, job_name(sid, 1))
     assert run.wait() == State.ERROR
+
+
+def test_a_policy_log_that_is_not_utf8_does_not_cost_the_result(
+    committed_sessions: sessionmaker[Session],
+    k8s_settings: Settings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    sid, name = queued.id, job_name(queued.id, 1)
+    run = start(committed_sessions, k8s_settings, apiserver, sid)
+    apiserver.run(NAMESPACE, name)
+    plan = plan_of(committed_sessions, k8s_settings, sid)
+    abort = Abort(kind="policy_error", reason="the policy raised: boom")
+    document = build_result(plan, "image", [ShardOutcome(abort=(0, 0, abort))], started=STARTED)
+    garbage = "bad bytes: \udcff\udcfe\n"  # b"\xff\xfe" on the wire
+    apiserver.succeed(NAMESPACE, name, [printed(document)], policy_logs=[garbage])
+    assert run.wait() == State.FAILED
+    assert run.submission(sid).log_tail == "bad bytes: \ufffd\ufffd"
+
+
+def test_a_young_job_of_an_attempt_not_yet_seen_active_is_kept(
+    committed_sessions: sessionmaker[Session],
+    k8s_settings: Settings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    name = job_name(queued.id, 1)
+    run = start(committed_sessions, k8s_settings, apiserver, queued.id)
+    now = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    apiserver.jobs[(NAMESPACE, name)]["metadata"]["creationTimestamp"] = now
+    (clean,) = container_cleaners(k8s_settings)
+    assert clean(set()) == []  # just created: the reconciler's snapshot may predate it
+    apiserver.fail(NAMESPACE, name)
+    assert run.wait() == State.ERROR
+
+
+def test_a_job_of_the_same_name_that_is_not_ours_is_left_alone(
+    committed_sessions: sessionmaker[Session],
+    k8s_settings: Settings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    from tests.worker.k8s_double import make_spec
+    from worker.kubernetes import build_job
+
+    other = build_job(make_spec(submission_id=queued.id, attempt=1))
+    other["metadata"]["labels"]["manieval.io/submission"] = "999"
+    apiserver.put_job(other)
+    assert Run(committed_sessions, k8s_settings).wait() == State.ERROR
+    with committed_sessions() as db:
+        submission = db.get(Submission, queued.id)
+        assert submission is not None
+        assert submission.reason.startswith("cannot create the evaluation Job")
+    assert apiserver.deletions == []
+    assert (NAMESPACE, job_name(queued.id, 1)) in apiserver.jobs
+
+
+def test_a_bug_while_watching_still_ends_the_attempt_and_removes_the_job(
+    committed_sessions: sessionmaker[Session],
+    k8s_settings: Settings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from worker.k8s_executor import KubernetesExecutor
+
+    def broken(*_args: object) -> None:
+        raise RuntimeError("unexpected")
+
+    monkeypatch.setattr(KubernetesExecutor, "pods", broken)
+    name = job_name(queued.id, 1)
+    run = start(committed_sessions, k8s_settings, apiserver, queued.id)
+    assert run.wait() == State.ERROR
+    assert run.submission(queued.id).reason == "the worker failed: RuntimeError: unexpected"
+    assert (name, "Foreground") in apiserver.deletions
