@@ -206,10 +206,12 @@ def _install_monitoring(app: FastAPI, sessions: sessionmaker[Session], settings:
         try:
             with sessions() as db:
                 db.execute(text("SELECT 1"))
-        except Exception as exc:
-            return JSONResponse({"status": "unavailable", "database": str(exc)}, 503)
+        except Exception:  # the detail may name hosts and users: the log has it, not the answer
+            log.exception("readiness: the database does not answer")
+            return JSONResponse({"status": "unavailable", "database": "unreachable"}, 503)
         if (problem := _broker_problem(settings)) is not None:
-            return JSONResponse({"status": "unavailable", "broker": problem}, 503)
+            log.warning("readiness: the broker does not answer: %s", problem)
+            return JSONResponse({"status": "unavailable", "broker": "unreachable"}, 503)
         return JSONResponse({"status": "ok"})
 
     @app.get("/metrics", include_in_schema=False)

@@ -96,6 +96,10 @@ class Unavailable(AppError):
     status = 503
     code = "unavailable"
 
+    def headers(self) -> dict[str, str]:
+        retry_after = self.extra.get("retry_after")
+        return {} if retry_after is None else {"Retry-After": str(max(1, int(retry_after)))}
+
 
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     status: {"model": ErrorBody} for status in (400, 401, 403, 404, 409, 422, 429, 503)

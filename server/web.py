@@ -33,6 +33,7 @@ def install(app: FastAPI) -> None:
     app.add_exception_handler(LoginRequired, login_redirect)
     app.state.score_history = web_challenges.ScoreHistory()
     app.state.event_timing = web_events.StreamTiming()
+    app.state.event_slots = web_events.StreamSlots()
     areas = (web_accounts, web_challenges, web_submit, web_submissions, web_events)
     app.include_router(router)
     for area in areas:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import threading
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -26,6 +27,7 @@ from starlette.concurrency import run_in_threadpool
 
 from server import accounts
 from server.deps import SESSION_COOKIE, services
+from server.errors import Unavailable
 from server.models import State, Submission, Transition, User
 from server.submissions import get_visible, visible_to
 from server.web_support import Id
@@ -35,10 +37,38 @@ router = APIRouter(include_in_schema=False)
 
 @dataclass(frozen=True)
 class StreamTiming:
-    poll_s: float = 0.5
+    poll_s: float = 1.0
     keepalive_s: float = 15.0
     max_s: float = 120.0  # also bounds how long a server shutdown waits for open streams
     retry_ms: int = 3000  # how long the browser waits before reconnecting
+
+
+class StreamSlots:
+    """Bounds open streams, in all and per client address: each one polls the database, so
+    without a bound a few hundred idle tabs (or a script) would take the thread pool."""
+
+    def __init__(self, *, total: int = 200, per_client: int = 8) -> None:
+        self.total, self.per_client = total, per_client
+        self._open: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def take(self, client: str) -> bool:
+        with self._lock:
+            if (
+                sum(self._open.values()) >= self.total
+                or self._open.get(client, 0) >= self.per_client
+            ):
+                return False
+            self._open[client] = self._open.get(client, 0) + 1
+            return True
+
+    def give_back(self, client: str) -> None:
+        with self._lock:
+            left = self._open.get(client, 0) - 1
+            if left > 0:
+                self._open[client] = left
+            else:
+                self._open.pop(client, None)
 
 
 @dataclass(frozen=True)
@@ -145,8 +175,20 @@ async def submission_events(
     if resumed.isdigit() and len(resumed) < 19:
         after = max(after, int(resumed))
     timing: StreamTiming = request.app.state.event_timing
+    slots: StreamSlots = request.app.state.event_slots
+    client = request.client.host if request.client is not None else "unknown"
+    if not slots.take(client):
+        raise Unavailable("too many live views are open; the page will try again", retry_after=10)
+
+    async def bounded() -> AsyncIterator[str]:
+        try:
+            async for chunk in _stream(request, submission_id, after, user, timing):
+                yield chunk
+        finally:
+            slots.give_back(client)
+
     return StreamingResponse(
-        _stream(request, submission_id, after, user, timing),
+        bounded(),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"},
     )

@@ -13,7 +13,7 @@ import secrets
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Annotated, Any
-from urllib.parse import quote, urlencode
+from urllib.parse import quote, urlencode, urlsplit
 
 import jinja2
 from fastapi import Depends, Form, Request
@@ -30,6 +30,8 @@ WEB_DIR = ROOT / "web"
 TEMPLATES_DIR = WEB_DIR / "templates"
 STATIC_DIR = WEB_DIR / "static"
 FORM_COOKIE = "manieval_form"
+ANONYMOUS_FORMS = frozenset({"/login", "/register"})
+"""The only forms a token bound to the form cookie (not to a session) may post."""
 # Paths for programs, whose errors stay the API's JSON body.
 MACHINE_PATHS = (
     "/api/",
@@ -142,13 +144,15 @@ ViewerDep = Annotated[Viewer, Depends(viewer)]
 
 
 def posted(request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] = "") -> Viewer:
-    """The viewer of a form POST, whose CSRF token must match the session or the form cookie
-    (a login form loaded before logging in elsewhere); otherwise 403 and nothing is done."""
+    """The viewer of a form POST, whose CSRF token must match the session, or on the login and
+    register forms the form cookie (a form loaded before logging in elsewhere); otherwise 403
+    and nothing is done."""
     key = services(request).csrf_key
     if who.session is not None and security.csrf_valid(csrf_token, who.session.digest, key):
         return who
     nonce = request.cookies.get(FORM_COOKIE)
-    if nonce and security.csrf_valid(csrf_token, _form_digest(nonce), key):
+    anonymous_form = request.url.path in ANONYMOUS_FORMS
+    if anonymous_form and nonce and security.csrf_valid(csrf_token, _form_digest(nonce), key):
         return who
     raise Forbidden(
         "This form's security token is missing or out of date. "
@@ -184,6 +188,10 @@ def login_redirect(_request: Request, exc: Exception) -> Response:
 def safe_next(path: str | None, default: str = "/") -> str:
     """A local path to go to after logging in; anything else (another site) is ignored."""
     if not path or not path.startswith("/") or path.startswith("//") or "\\" in path:
+        return default
+    if any(ord(c) <= 0x20 or ord(c) == 0x7F for c in path):
+        return default  # browsers drop tabs and newlines: "/\t/evil.example" is "//evil.example"
+    if urlsplit(path).netloc:
         return default
     return path
 

@@ -166,3 +166,30 @@ def test_token_problems_are_shown_by_the_name_field_and_others_tokens_are_404(
     )
     assert theirs.status_code == 404
     assert "revoked" not in alice.get("/account").text.split("<tbody>")[1]
+
+
+@pytest.mark.parametrize(
+    "target",
+    ["/\t/evil.example/x", "/\n/evil.example", "//evil.example", "/\\evil.example", "https://x.y/"],
+)
+def test_after_registering_no_next_leads_to_another_site(client: TestClient, target: str) -> None:
+    r = register(browser(client), next=target)
+    assert r.headers["location"] == "/account"  # type: ignore[attr-defined]
+
+
+def test_a_form_cookie_token_opens_only_the_login_and_register_forms(
+    client: TestClient, db: Session
+) -> None:
+    make_user(db, "alice")
+    visitor = browser(client)
+    anonymous = csrf_of(visitor.get("/login").text)  # bound to the form cookie, not a session
+    r = visitor.post(
+        "/login",
+        data={"csrf_token": anonymous, "login": "alice", "password": PASSWORD, "next": "/"},
+    )
+    assert r.status_code == 303
+    refused = visitor.post("/account/tokens", data={"csrf_token": anonymous, "name": "ci"})
+    assert refused.status_code == 403
+    fresh = csrf_of(visitor.get("/account").text)
+    created = visitor.post("/account/tokens", data={"csrf_token": fresh, "name": "ci"})
+    assert created.status_code == 201

@@ -166,3 +166,20 @@ def test_private_streams_are_404_to_others_and_open_to_the_owner(
     owner = browser(live, "alice").get(f"/submissions/{sid}/events")
     assert owner.status_code == 200
     assert "event: transition" in owner.text
+
+
+def test_open_streams_are_bounded_per_client(
+    live: TestClient, committed_sessions: sessionmaker[Session]
+) -> None:
+    from server.web_events import StreamSlots
+
+    sid = queued(committed_sessions)
+    slots = StreamSlots(total=10, per_client=1)
+    live.app.state.event_slots = slots  # type: ignore[attr-defined]
+    assert slots.take("testclient")  # this client already has its one stream open
+    r = live.get(f"/submissions/{sid}/events", headers={"Accept": "text/event-stream"})
+    assert r.status_code == 503
+    assert r.headers["retry-after"] == "10"
+    slots.give_back("testclient")
+    assert slots.take("someone-else")
+    assert slots.take("testclient")
