@@ -86,7 +86,18 @@ def login(
         token_id=new["id"],
         token_name=new["name"],
     )
-    path = credentials.save(saved)
+    try:
+        path = credentials.save(saved)
+    except OSError as exc:  # a token saved nowhere must not stay valid on the server
+        _revoke(saved)
+        fail(
+            ExitCode.NOT_LOGGED_IN,
+            f"cannot save the API token: {exc}",
+            "the token was revoked again; set MANIEVAL_CONFIG_DIR to a writable directory",
+        )
+    except BaseException:
+        _revoke(saved)
+        raise
     err.print(f"logged in to {url} as {saved.username}; token saved in {path}")
     if previous is not None and (previous.server, previous.token_id) != (url, saved.token_id):
         _forget(previous)

@@ -239,6 +239,24 @@ def test_logging_in_again_revokes_the_replaced_token(live: LiveServer, tmp_path:
     assert httpx.get(me, headers={"Authorization": f"Bearer {second}"}).status_code == 200
 
 
+def test_a_token_that_cannot_be_saved_is_revoked_and_said(live: LiveServer, tmp_path: Path) -> None:
+    omar = Participant(live.url, tmp_path / "not-a-directory")
+    omar.config_dir.write_text("a file where the config directory should be")
+    omar.register("omar")
+    r = omar.run("login", "-u", "omar", "--password-stdin", input=PASSWORD + "\n")
+    assert r.exit_code == 12, r.output
+    assert "cannot save the API token" in r.output
+    assert "Traceback" not in r.output
+    fresh = httpx.post(
+        f"{live.url}/api/v1/auth/token", json={"login": "omar", "password": PASSWORD}
+    ).json()
+    tokens = httpx.get(
+        f"{live.url}/api/v1/tokens", headers={"Authorization": f"Bearer {fresh['token']}"}
+    ).json()
+    assert len(tokens) == 2  # the CLI's, and the one just made to look
+    assert [t["id"] for t in tokens if t["revoked_at"] is None] == [fresh["id"]]
+
+
 def test_logout_works_when_the_server_is_gone_and_says_so(tmp_path: Path) -> None:
     with running_server(tmp_path / "gone", challenges=False) as server:
         olga = participant(server, tmp_path, "olga")
