@@ -24,7 +24,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.db import make_engine, session_factory
 from server.settings import Settings
-from worker.queue import RUN_NEXT, CeleryQueue
+from worker.queue import RUN_NEXT, WATCH, CeleryQueue
 
 log = logging.getLogger(__name__)
 RECONCILE = "manieval.reconcile"
@@ -45,6 +45,7 @@ def make_app(settings: Settings) -> Celery:
     )
     celery.task(name=RUN_NEXT, acks_late=True)(_run_next)
     celery.task(name=RECONCILE, acks_late=False)(_reconcile)
+    celery.task(name=WATCH, acks_late=True)(_watch)
     return celery
 
 
@@ -73,12 +74,29 @@ def _run_next(submission_id: int = 0, attempt: int = 0) -> Any:
 
 def _reconcile() -> Any:
     from worker.reconcile import reconcile
-    from worker.run import container_cleaners
+    from worker.run import container_cleaners, job_resumer
 
+    queue = CeleryQueue(_settings())
     report = reconcile(
-        _sessions(), CeleryQueue(_settings()), cleaners=container_cleaners(_settings())
+        _sessions(),
+        queue,
+        cleaners=container_cleaners(_settings()),
+        resume=job_resumer(_settings(), queue.watch),
     )
-    return {"timed_out": report.timed_out, "lost": report.lost, "woken": report.woken}
+    return {
+        "timed_out": report.timed_out,
+        "lost": report.lost,
+        "resumed": report.resumed,
+        "woken": report.woken,
+    }
+
+
+def _watch(submission_id: int, attempt: int) -> Any:
+    """Take over watching a running attempt's Job (its first watcher was lost)."""
+    from worker.k8s_run import resume_watch
+
+    state = resume_watch(_sessions(), _settings(), submission_id, attempt)
+    return {"submission": submission_id, "state": state.value if state else None}
 
 
 def _logging(**_kwargs: Any) -> None:

@@ -14,7 +14,7 @@ import logging
 import re
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
 from typing import Any
@@ -26,7 +26,7 @@ from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.sources import LOG_TAIL_BYTES
 from evaluator.suite import Suite
 from server.ingest import report_progress
-from server.models import State, utcnow
+from server.models import State, Submission, utcnow
 from server.settings import Settings
 from worker.k8s_executor import JobConflict, JobStatus, KubernetesError, KubernetesExecutor
 from worker.kubernetes import (
@@ -115,27 +115,72 @@ def run_as_job(
     """Run a claimed (`launching`) attempt as a Job; returns the state it ended in. `stop`
     (tests, shutdown) ends the watch early and leaves the Job to the reconciler."""
     try:
-        plan = build_plan(suite, phase, secret=settings.secret("seed_secret").encode())
-        spec = job_spec(
-            settings,
-            submission_id,
-            attempt,
-            plan,
-            suite=suite,
-            suite_yaml=suite_yaml,
-            pinned=pinned,
+        watch = _watch_for(
+            sessions, settings, submission_id, attempt, suite, suite_yaml, phase, pinned, stop
         )
-        executor = kubernetes_executor(settings)
     except Exception as exc:  # our configuration: error, with the reason
         return finish(sessions, submission_id, attempt, State.ERROR, f"cannot run: {exc}")
-    watch = _Watch(sessions, settings, executor, spec, plan, stop or threading.Event())
+    return _guarded(watch, watch.run)
+
+
+def resume_watch(
+    sessions: sessionmaker[Session],
+    settings: Settings,
+    submission_id: int,
+    attempt: int,
+    *,
+    stop: threading.Event | None = None,
+) -> State | None:
+    """Watch the Job of a `running` attempt whose watcher was lost (a worker killed): the
+    reconciler asks for this when the Job still exists, so the evaluation is not thrown away."""
+    from server.challenges import suite_of
+
+    with sessions() as db:
+        submission = db.get(Submission, submission_id)
+        if submission is None or submission.attempt != attempt:
+            return None
+        if submission.state != State.RUNNING:
+            return submission.state
+        suite = suite_of(submission.challenge)
+        suite_yaml, phase = submission.challenge.suite_yaml, submission.phase.name
+        pinned = submission.pinned_image
     try:
-        return watch.run()
+        watch = _watch_for(
+            sessions, settings, submission_id, attempt, suite, suite_yaml, phase, pinned, stop
+        )
+    except Exception as exc:
+        return finish(sessions, submission_id, attempt, State.ERROR, f"cannot run: {exc}")
+    log.info("resuming the watch of Job %s", watch.spec.name)
+    return _guarded(watch, watch.follow)
+
+
+def _watch_for(
+    sessions: sessionmaker[Session],
+    settings: Settings,
+    submission_id: int,
+    attempt: int,
+    suite: Suite,
+    suite_yaml: str,
+    phase: str,
+    pinned: str,
+    stop: threading.Event | None,
+) -> _Watch:
+    plan = build_plan(suite, phase, secret=settings.secret("seed_secret").encode())
+    spec = job_spec(
+        settings, submission_id, attempt, plan, suite=suite, suite_yaml=suite_yaml, pinned=pinned
+    )
+    executor = kubernetes_executor(settings)
+    return _Watch(sessions, settings, executor, spec, plan, stop or threading.Event())
+
+
+def _guarded(watch: _Watch, body: Callable[[], State | None]) -> State | None:
+    try:
+        return body()
     except Exception as exc:  # a bug of ours: still a final state with a reason, and no Job
-        log.exception("watching Job %s failed", spec.name)
+        log.exception("watching Job %s failed", watch.spec.name)
         return watch.end(State.ERROR, f"the worker failed: {type(exc).__name__}: {exc}")
     finally:
-        executor.close()
+        watch.executor.close()
 
 
 @dataclass
@@ -167,9 +212,10 @@ class _Watch:
             return self.end(State.ERROR, f"cannot create the evaluation Job: {exc}")
         if started.adopted:
             log.info("adopted the existing Job %s", started.name)
-        return self._watch()
+        return self.follow()
 
-    def _watch(self) -> State | None:
+    def follow(self) -> State | None:
+        """Look at the Job until it ends (or the attempt ends elsewhere)."""
         outage_since: float | None = None
         while not self.stop.wait(self.settings.k8s_poll_interval):
             try:

@@ -9,6 +9,7 @@ from celery import Celery
 from server.settings import Settings
 
 RUN_NEXT = "manieval.run_next"
+WATCH = "manieval.watch"
 
 
 class CeleryQueue:
@@ -19,6 +20,10 @@ class CeleryQueue:
 
     def enqueue(self, submission_id: int, attempt: int) -> None:
         self._app.send_task(RUN_NEXT, args=[submission_id, attempt])
+
+    def watch(self, submission_id: int, attempt: int) -> None:
+        """Ask a worker to take over watching a running attempt's Kubernetes Job."""
+        self._app.send_task(WATCH, args=[submission_id, attempt])
 
 
 @functools.cache

@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.dispatch import Dispatcher, WorkQueue
@@ -29,6 +29,10 @@ log = logging.getLogger(__name__)
 WORKER_LOST = "the worker evaluating it stopped responding"
 Cleaner = Callable[[set[tuple[int, int]]], list[str]]
 """Removes runtime resources (containers, Jobs) of attempts not in the given active set."""
+Resumer = Callable[[int, int], bool]
+"""For a running attempt whose watcher went silent: True when its evaluation still exists
+elsewhere (a Kubernetes Job) and a new watcher has been sent for it; raises when it cannot
+tell (the attempt is then left for the next pass)."""
 
 
 @dataclass(frozen=True)
@@ -46,6 +50,7 @@ class Report:
     timed_out: list[int] = field(default_factory=list)
     lost: list[int] = field(default_factory=list)
     requeued: list[int] = field(default_factory=list)
+    resumed: list[int] = field(default_factory=list)
     woken: int = 0
     removed: list[str] = field(default_factory=list)
 
@@ -55,6 +60,7 @@ def reconcile(
     work: WorkQueue,
     *,
     cleaners: Sequence[Cleaner] = (),
+    resume: Resumer | None = None,
     timeouts: Timeouts = Timeouts(),
     now: datetime | None = None,
 ) -> Report:
@@ -86,6 +92,13 @@ def reconcile(
             Submission.updated_at < now - timeouts.launch
         )
         for s in db.scalars(select(Submission).where(stale_running | stale_launch)):
+            if s.state == State.RUNNING and resume is not None:
+                resumed = _resume(db, s, resume, now)
+                if resumed is None:
+                    continue  # cannot tell now: the next pass looks again
+                if resumed:
+                    report.resumed.append(s.id)
+                    continue
             _lost(db, s, now, report)
             db.commit()
 
@@ -113,9 +126,27 @@ def reconcile(
             report.removed += clean(active)
         except Exception:
             log.exception("cleaning leftovers failed; the next pass will try again")
-    if report.timed_out or report.lost or report.removed:
+    if report.timed_out or report.lost or report.removed or report.resumed:
         log.info("reconciled: %s", report)
     return report
+
+
+def _resume(db: Session, s: Submission, resume: Resumer, now: datetime) -> bool | None:
+    """Hand a silent attempt to a new watcher when its evaluation is still there; None when
+    that cannot be told now."""
+    try:
+        if not resume(s.id, s.attempt):
+            return False
+    except Exception:
+        log.exception("cannot tell whether submission %s still runs; next pass", s.id)
+        return None
+    db.execute(  # the new watcher's first look will follow; until then, not silent
+        update(Submission)
+        .where(Submission.id == s.id, Submission.attempt == s.attempt)
+        .values(heartbeat_at=now)
+    )
+    db.commit()
+    return True
 
 
 def _lost(db: Session, s: Submission, now: datetime, report: Report) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from server.models import State, Submission, utcnow
 from server.settings import Settings
 from server.submissions import LOCAL_PREFIX
 from worker.outcome import conclude, final_state, finish, start_running
-from worker.reconcile import Cleaner
+from worker.reconcile import Cleaner, Resumer
 from worker.scheduling import claim_next
 
 log = logging.getLogger(__name__)
@@ -100,6 +101,27 @@ def container_cleaners(settings: Settings) -> list[Cleaner]:
 
         cleaners.append(clean_jobs)
     return cleaners
+
+
+def job_resumer(settings: Settings, send: Callable[[int, int], None]) -> Resumer | None:
+    """With Kubernetes, a silent attempt's Job may still be running (or done): `send` a new
+    watcher for it rather than throwing the evaluation away. None for other executors."""
+    if settings.executor != "kubernetes":
+        return None
+
+    def resume(submission_id: int, attempt: int) -> bool:
+        from worker.k8s_run import kubernetes_executor
+
+        executor = kubernetes_executor(settings)
+        try:
+            if executor.status(submission_id, attempt).phase == "missing":
+                return False
+        finally:
+            executor.close()
+        send(submission_id, attempt)
+        return True
+
+    return resume
 
 
 def run_next(

@@ -430,3 +430,94 @@ def test_a_bug_while_watching_still_ends_the_attempt_and_removes_the_job(
     assert run.wait() == State.ERROR
     assert run.submission(queued.id).reason == "the worker failed: RuntimeError: unexpected"
     assert (name, "Foreground") in apiserver.deletions
+
+
+def test_a_lost_watcher_is_replaced_and_the_running_job_kept(
+    committed_sessions: sessionmaker[Session],
+    k8s_settings: Settings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    from datetime import timedelta
+
+    from server.challenges import suite_of
+    from server.models import utcnow
+    from tests.server.conftest import RecordingQueue
+    from worker.k8s_run import resume_watch, run_as_job
+    from worker.reconcile import reconcile
+    from worker.run import job_resumer
+    from worker.scheduling import claim_next
+
+    sid, name = queued.id, job_name(queued.id, 1)
+    with committed_sessions() as db:
+        assert claim_next(db, max_running_per_user=2) == (sid, 1)
+        submission = db.get(Submission, sid)
+        assert submission is not None
+        setup = {
+            "suite": suite_of(submission.challenge),
+            "suite_yaml": submission.challenge.suite_yaml,
+            "phase": "dev",
+            "pinned": submission.pinned_image,
+        }
+    killed = threading.Event()  # the first watcher's worker dies once the Job exists
+    first = threading.Thread(
+        target=run_as_job,
+        args=(committed_sessions, k8s_settings, sid, 1),
+        kwargs=setup | {"stop": killed},
+    )
+    first.start()
+    until(lambda: (NAMESPACE, name) in apiserver.jobs, "the Job")
+    killed.set()
+    first.join(timeout=30)
+    apiserver.run(NAMESPACE, name)
+
+    sent: list[tuple[int, int]] = []
+
+    def send(submission_id: int, attempt: int) -> None:
+        sent.append((submission_id, attempt))
+
+    later = utcnow() + timedelta(minutes=4)  # past the heartbeat timeout
+    report = reconcile(
+        committed_sessions,
+        RecordingQueue(),
+        resume=job_resumer(k8s_settings, send),
+        now=later,
+    )
+    assert (report.resumed, report.lost, sent) == ([sid], [], [(sid, 1)])
+    assert Run(committed_sessions, k8s_settings).submission(sid).state == State.RUNNING
+
+    outcome: list[State | None] = []
+    second = threading.Thread(
+        target=lambda: outcome.append(resume_watch(committed_sessions, k8s_settings, sid, 1))
+    )
+    second.start()
+    plan = plan_of(committed_sessions, k8s_settings, sid)
+    document = build_result(plan, "image", [ShardOutcome()], started=STARTED)
+    apiserver.succeed(NAMESPACE, name, [printed(document)])
+    second.join(timeout=60)
+    assert outcome == [State.SUCCEEDED]
+    assert [d for d in apiserver.deletions if d[0] == name] == [(name, "Foreground")]
+
+
+def test_a_silent_attempt_whose_job_is_gone_is_lost_as_before(
+    committed_sessions: sessionmaker[Session],
+    k8s_settings: Settings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    from datetime import timedelta
+
+    from server.ingest import report_state
+    from server.models import utcnow
+    from tests.server.conftest import RecordingQueue
+    from worker.reconcile import reconcile
+    from worker.run import job_resumer
+
+    with committed_sessions.begin() as db:
+        assert report_state(db, queued.id, 1, State.LAUNCHING, "go")
+        assert report_state(db, queued.id, 1, State.RUNNING, "go")
+    sent: list[tuple[int, int]] = []
+    later = utcnow() + timedelta(minutes=4)
+    resume = job_resumer(k8s_settings, lambda sid, attempt: sent.append((sid, attempt)))
+    report = reconcile(committed_sessions, RecordingQueue(), resume=resume, now=later)
+    assert (report.resumed, report.lost, sent) == ([], [queued.id], [])

@@ -105,3 +105,37 @@ def test_waiting_submissions_get_wake_ups_and_leftovers_are_cleaned(
     assert work.sent == [(s.id, 1), (0, 0)]  # the unsent outbox row, then a wake-up
     assert seen == [{(s.id, 1)}]
     assert report.removed == ["eval-99-1"]
+
+
+def test_a_resumer_that_cannot_tell_leaves_the_attempt_for_the_next_pass(
+    sessions: sessionmaker[Session], db: Session
+) -> None:
+    s = _submission(db)
+    _running(db, s)
+
+    def cannot_tell(_sid: int, _attempt: int) -> bool:
+        raise ConnectionError("the API server does not answer")
+
+    later = utcnow() + timedelta(minutes=4)
+    report = reconcile(sessions, RecordingQueue(), resume=cannot_tell, now=later)
+    assert (report.lost, report.resumed) == ([], [])
+    db.refresh(s)
+    assert s.state == State.RUNNING
+
+
+def test_a_resumed_attempt_is_not_silent_until_its_new_watcher_reports(
+    sessions: sessionmaker[Session], db: Session
+) -> None:
+    s = _submission(db)
+    _running(db, s)
+    sent: list[int] = []
+
+    def resume(sid: int, _attempt: int) -> bool:
+        sent.append(sid)
+        return True
+
+    later = utcnow() + timedelta(minutes=4)
+    assert reconcile(sessions, RecordingQueue(), resume=resume, now=later).resumed == [s.id]
+    soon = later + timedelta(minutes=1)  # within the heartbeat timeout of the hand-over
+    assert reconcile(sessions, RecordingQueue(), resume=resume, now=soon).resumed == []
+    assert sent == [s.id]
