@@ -76,6 +76,8 @@ class PodView:
     """How the policy container last ended, when it did not exit cleanly (OOMKilled, a code)."""
     evaluating: bool = False
     """Whether an evaluator container has started in some pod."""
+    disrupted: bool = False
+    """Whether the cluster evicted or preempted a pod of the Job (DisruptionTarget)."""
 
 
 @dataclass(frozen=True)
@@ -220,6 +222,10 @@ class KubernetesExecutor:
             status = pod.status
             if status is None:
                 continue
+            if any(
+                c.type == "DisruptionTarget" and c.status == "True" for c in status.conditions or []
+            ):
+                view = replace(view, disrupted=True)
             for container in [
                 *(status.init_container_statuses or []),
                 *(status.container_statuses or []),

@@ -268,6 +268,9 @@ class _Watch:
         if status.phase == "succeeded":
             return self._collect()
         if status.phase == "deadline_exceeded":
+            if self.executor.pods(*self.ids).disrupted:  # the cluster's doing, not the policy's
+                reason = "the cluster evicted the evaluation and it then ran out of time"
+                return self.end(State.ERROR, reason)
             return self.end(State.TIMED_OUT, "the evaluation exceeded its time budget")
         if status.phase == "missing":
             return self.end(State.ERROR, f"the evaluation's Job {self.spec.name} disappeared")

@@ -221,10 +221,12 @@ class ApiServerDouble:
             self._conclude(job, "FailureTarget", "Failed", reason, message)
 
     def exceed_deadline(self, namespace: str, name: str) -> None:
-        """activeDeadlineSeconds passed: the controller deletes the running pods, fails the Job."""
+        """activeDeadlineSeconds passed: the controller deletes the running pods (failed ones
+        stay), fails the Job."""
         with self.lock:
             for pod in self._pods_of(namespace, name):
-                del self.pods[(namespace, pod["metadata"]["name"])]
+                if pod["status"]["phase"] != "Failed":
+                    del self.pods[(namespace, pod["metadata"]["name"])]
             job = self.jobs[(namespace, name)]
             job["status"].update(active=0, ready=0, failed=1)
             message = "Job was active longer than specified deadline"

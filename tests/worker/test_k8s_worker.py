@@ -521,3 +521,18 @@ def test_a_silent_attempt_whose_job_is_gone_is_lost_as_before(
     resume = job_resumer(k8s_settings, lambda sid, attempt: sent.append((sid, attempt)))
     report = reconcile(committed_sessions, RecordingQueue(), resume=resume, now=later)
     assert (report.resumed, report.lost, sent) == ([], [queued.id], [])
+
+
+def test_an_eviction_that_makes_the_job_run_out_of_time_is_not_the_policys_fault(
+    committed_sessions: sessionmaker[Session],
+    k8s_settings: Settings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    name = job_name(queued.id, 1)
+    run = start(committed_sessions, k8s_settings, apiserver, queued.id)
+    apiserver.run(NAMESPACE, name)
+    apiserver.disrupt(NAMESPACE, name)  # the replacement pod starts late...
+    apiserver.exceed_deadline(NAMESPACE, name)  # ...and the Job's clock ran on
+    assert run.wait() == State.ERROR  # ours: it does not count against the quota
+    assert "evicted" in run.submission(queued.id).reason
