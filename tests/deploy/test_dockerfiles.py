@@ -53,7 +53,10 @@ def ids(path: Path) -> str:
 
 
 def test_every_image_has_its_dockerfile():
-    assert {p.parent.name for p in DOCKERFILES} == {"server", "worker", "evaluator", "policy-base"}
+    names = {p.parent.name for p in DOCKERFILES}
+    assert names == {"control-plane", "evaluator", "policy-base"}
+    control_plane = stages(DOCKER / "control-plane" / "Dockerfile")
+    assert [s.name for s in final_stages(control_plane)] == ["worker", "server"]  # server: default
     evaluator = stages(DOCKER / "evaluator" / "Dockerfile")
     assert [s.name for s in final_stages(evaluator)] == ["gpu", "cpu"]  # cpu: the default
 
@@ -92,7 +95,7 @@ def test_nothing_is_fetched_by_add_and_every_pip_install_is_constrained(path: Pa
 
 
 def test_the_images_run_as_the_users_the_pods_name():
-    for name in ("server", "worker", "evaluator"):
+    for name in ("control-plane", "evaluator"):
         all_stages = stages(DOCKER / name / "Dockerfile")
         for stage in final_stages(all_stages):
             assert effective_user(stage, all_stages) == f"{EVALUATOR_UID}:{SHARED_GID}"
@@ -150,7 +153,7 @@ def test_the_build_context_holds_what_the_images_run():
         "manieval.egg-info/PKG-INFO",
         "k8s/overlays/dev/secrets.yaml",
         "docs/deploy.md",
-        "docker/server/Dockerfile",
+        "docker/control-plane/Dockerfile",
         "bench/leaderboard_load.py",
         "artifacts/run/video.mp4",
         "r.json",
