@@ -15,7 +15,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
@@ -27,14 +27,26 @@ from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import Abort, EvaluationResult
 from evaluator.runner import ShardOutcome
 from evaluator.sources import LocalDirectory
-from server.challenges import suite_of
-from server.models import State, Submission
+from server.challenges import ChallengeOptions, load_challenge, suite_of
+from server.ingest import report_state
+from server.models import State, Submission, utcnow
 from server.settings import Settings
+from server.submissions import cancel
 from tests.evaluator.conftest import REPO, SCRIPTED, episode_records
-from tests.server.conftest import make_challenge, make_user, queue_submission
-from tests.worker.k8s_double import EVALUATOR_IMAGE, NAMESPACE, ApiServerDouble, running_apiserver
-from worker.kubernetes import job_name
-from worker.run import container_cleaners, run_next
+from tests.server.conftest import SUITE, RecordingQueue, make_challenge, make_user, queue_submission
+from tests.worker.k8s_double import (
+    EVALUATOR_IMAGE,
+    NAMESPACE,
+    ApiServerDouble,
+    make_spec,
+    running_apiserver,
+)
+from worker.k8s_executor import KubernetesExecutor
+from worker.k8s_run import resume_watch, run_as_job
+from worker.kubernetes import build_job, job_name
+from worker.reconcile import reconcile
+from worker.run import container_cleaners, job_resumer, run_next
+from worker.scheduling import claim_next
 
 STARTED = datetime(2026, 5, 1, tzinfo=UTC)
 
@@ -290,8 +302,6 @@ def test_cancel_during_a_run_deletes_the_job_and_its_pods(
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
-    from server.submissions import cancel
-
     name = job_name(queued.id, 1)
     run = start(committed_sessions, k8s_settings, apiserver, queued.id)
     apiserver.run(NAMESPACE, name)
@@ -340,9 +350,6 @@ def test_a_suite_that_asks_for_shards_gets_an_indexed_job(
     apiserver: ApiServerDouble,
     tmp_path: Path,
 ) -> None:
-    from server.challenges import ChallengeOptions, load_challenge
-    from tests.server.conftest import SUITE
-
     sharded = tmp_path / "sharded.yaml"
     sharded.write_text(SUITE.read_text().replace("name: server-tiny", "name: sharded\nshards: 3"))
     with committed_sessions() as db:
@@ -397,9 +404,6 @@ def test_a_job_of_the_same_name_that_is_not_ours_is_left_alone(
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
-    from tests.worker.k8s_double import make_spec
-    from worker.kubernetes import build_job
-
     other = build_job(make_spec(submission_id=queued.id, attempt=1))
     other["metadata"]["labels"]["manieval.io/submission"] = "999"
     apiserver.put_job(other)
@@ -419,8 +423,6 @@ def test_a_bug_while_watching_still_ends_the_attempt_and_removes_the_job(
     queued: Submission,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from worker.k8s_executor import KubernetesExecutor
-
     def broken(*_args: object) -> None:
         raise RuntimeError("unexpected")
 
@@ -438,15 +440,6 @@ def test_a_lost_watcher_is_replaced_and_the_running_job_kept(
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
-    from datetime import timedelta
-
-    from server.challenges import suite_of
-    from server.models import utcnow
-    from tests.server.conftest import RecordingQueue
-    from worker.k8s_run import resume_watch, run_as_job
-    from worker.reconcile import reconcile
-    from worker.run import job_resumer
-    from worker.scheduling import claim_next
 
     sid, name = queued.id, job_name(queued.id, 1)
     with committed_sessions() as db:
@@ -505,13 +498,6 @@ def test_a_silent_attempt_whose_job_is_gone_is_lost_as_before(
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
-    from datetime import timedelta
-
-    from server.ingest import report_state
-    from server.models import utcnow
-    from tests.server.conftest import RecordingQueue
-    from worker.reconcile import reconcile
-    from worker.run import job_resumer
 
     with committed_sessions.begin() as db:
         assert report_state(db, queued.id, 1, State.LAUNCHING, "go")
