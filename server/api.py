@@ -24,15 +24,13 @@ from server.deps import (
     services,
 )
 from server.errors import ERROR_RESPONSES, NotFound, Unauthorized
-from server.ingest import task_rows
+from server.ingest import condition_means, episode_rows, task_rows
 from server.leaderboard import PageKey, Rendered
 from server.models import (
     ApiToken,
     Challenge,
-    EpisodeResultRow,
     Phase,
     Submission,
-    TaskResultRow,
     Transition,
     User,
     utcnow,
@@ -440,9 +438,6 @@ def submission_detail(submission_id: Id, who: CallerDep, db: DBDep) -> Submissio
         select(Transition).where(Transition.submission_id == s.id).order_by(Transition.id)
     )
     rows = task_rows(db, s)
-    conditions: dict[str, list[float]] = {}
-    for row in rows:
-        conditions.setdefault(row.condition, []).append(row.success_rate)
     return SubmissionDetail(
         **_submission_out(s).model_dump(),
         transitions=[
@@ -468,7 +463,7 @@ def submission_detail(submission_id: Id, who: CallerDep, db: DBDep) -> Submissio
             )
             for r in rows
         ],
-        conditions={name: sum(v) / len(v) for name, v in conditions.items()},
+        conditions=condition_means(rows),
     )
 
 
@@ -489,17 +484,7 @@ def submission_episodes(
 ) -> Page[EpisodeOut]:
     """Per-episode records (owner and admins). Seeds of secret-seed phases are never shown."""
     s = _owned(db, submission_id, who.user)
-    query = (
-        select(EpisodeResultRow, TaskResultRow.condition, TaskResultRow.env_id)
-        .join(TaskResultRow, EpisodeResultRow.task_result_id == TaskResultRow.id)
-        .where(TaskResultRow.submission_id == s.id, TaskResultRow.attempt == s.attempt)
-    )
-    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = db.execute(
-        query.order_by(TaskResultRow.id, EpisodeResultRow.index)
-        .offset((page - 1) * per_page)
-        .limit(per_page)
-    ).all()
+    rows, total = episode_rows(db, s, page=page, per_page=per_page)
     show_seed = s.phase.public_seeds
     items = [
         EpisodeOut(

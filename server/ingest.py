@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import delete, select, update
+from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session as DB
 
 from evaluator.results import EvaluationResult
@@ -151,3 +151,32 @@ def task_rows(db: DB, submission: Submission) -> list[TaskResultRow]:
             .order_by(TaskResultRow.id)
         )
     )
+
+
+def condition_means(rows: list[TaskResultRow]) -> dict[str, float]:
+    """Each condition's mean success rate over its tasks."""
+    by_condition: dict[str, list[float]] = {}
+    for row in rows:
+        by_condition.setdefault(row.condition, []).append(row.success_rate)
+    return {name: sum(rates) / len(rates) for name, rates in by_condition.items()}
+
+
+def episode_rows(
+    db: DB, submission: Submission, *, page: int, per_page: int
+) -> tuple[list[tuple[EpisodeResultRow, str, str]], int]:
+    """One page of the current attempt's episodes as (row, condition, task), and their total."""
+    query = (
+        select(EpisodeResultRow, TaskResultRow.condition, TaskResultRow.env_id)
+        .join(TaskResultRow, EpisodeResultRow.task_result_id == TaskResultRow.id)
+        .where(
+            TaskResultRow.submission_id == submission.id,
+            TaskResultRow.attempt == submission.attempt,
+        )
+    )
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = db.execute(
+        query.order_by(TaskResultRow.id, EpisodeResultRow.index)
+        .offset((page - 1) * per_page)
+        .limit(per_page)
+    ).all()
+    return [(row, condition, env_id) for row, condition, env_id in rows], total

@@ -13,17 +13,16 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Form, Query, Request
 from fastapi.responses import FileResponse, Response
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session as DB
 
 from server.deps import DBDep, services
 from server.errors import Forbidden, NotFound
-from server.ingest import task_rows
+from server.ingest import condition_means, episode_rows, task_rows
 from server.models import (
     EpisodeResultRow,
     State,
     Submission,
-    TaskResultRow,
     Transition,
     User,
 )
@@ -46,17 +45,7 @@ class Episode:
 
 
 def _episodes(db: DB, s: Submission, page: int) -> tuple[list[Episode], int]:
-    query = (
-        select(EpisodeResultRow, TaskResultRow.condition, TaskResultRow.env_id)
-        .join(TaskResultRow, EpisodeResultRow.task_result_id == TaskResultRow.id)
-        .where(TaskResultRow.submission_id == s.id, TaskResultRow.attempt == s.attempt)
-    )
-    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = db.execute(
-        query.order_by(TaskResultRow.id, EpisodeResultRow.index)
-        .offset((page - 1) * EPISODES_PER_PAGE)
-        .limit(EPISODES_PER_PAGE)
-    ).all()
+    rows, total = episode_rows(db, s, page=page, per_page=EPISODES_PER_PAGE)
     return [Episode(condition=c, env_id=e, row=r) for r, c, e in rows], total
 
 
@@ -68,9 +57,6 @@ def outcome(db: DB, s: Submission, who: Viewer, episode_page: int = 1) -> dict[s
     """What the page shows below the live timeline: it changes when the submission ends."""
     private = owned_or_admin(s, who.user)
     rows = task_rows(db, s)
-    by_condition: dict[str, list[float]] = {}
-    for row in rows:
-        by_condition.setdefault(row.condition, []).append(row.success_rate)
     episodes, episode_total = _episodes(db, s, episode_page) if private else ([], 0)
     chart_rows = [
         TaskSuccess(
@@ -89,7 +75,7 @@ def outcome(db: DB, s: Submission, who: Viewer, episode_page: int = 1) -> dict[s
         "private": private,
         "tasks": rows,
         "chart": success_bars(chart_rows) if rows else None,
-        "conditions": {name: sum(v) / len(v) for name, v in by_condition.items()},
+        "conditions": condition_means(rows),
         "episodes": episodes,
         "episode_total": episode_total,
         "episode_page": episode_page,
