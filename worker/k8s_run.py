@@ -15,7 +15,7 @@ import re
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import timedelta
 from typing import Any
 
@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 DEADLINE_GRACE_S = 300.0  # beyond the Job's own deadline, before the reconciler times it out
 API_OUTAGE_S = 600.0  # the API server unreachable this long: the attempt ends `error`
 POLICY_LOG_LINES = 400
+PROGRESS_EVERY = 3  # looks per read of the evaluator's log (each look is 2 API requests)
 _EPISODE_LINE = re.compile(r"^manieval: run (\d+) episode \d+:", re.MULTILINE)
 
 
@@ -191,6 +192,8 @@ class _Watch:
     spec: JobSpec
     plan: EvaluationPlan
     stop: threading.Event
+    _looks: int = 0
+    _read_progress: dict[str, Any] = field(default_factory=dict)
 
     @property
     def ids(self) -> tuple[int, int]:
@@ -245,7 +248,10 @@ class _Watch:
             return self.end(State.ERROR, f"the evaluation could not start: {view.stuck}")
         progress: dict[str, Any] = {"phase": status.phase, "done": 0}
         if view.evaluating:
-            progress = progress | self._progress()
+            if self._looks % PROGRESS_EVERY == 0:  # the log is the costly read: not every look
+                self._read_progress = self._progress()
+            self._looks += 1
+            progress |= self._read_progress
         if not self._beat(progress):
             return self._cancelled()
         return None
