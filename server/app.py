@@ -23,14 +23,14 @@ from server.db import make_engine, session_factory
 from server.deps import Services
 from server.dispatch import Dispatcher, InlineQueue, WorkQueue
 from server.errors import AppError, ErrorBody, ErrorDetail, Invalid, Unauthorized, Unavailable
-from server.images import (
+from server.image_refs import (
     ImageError,
     ImageReference,
-    RegistryClient,
     RegistryUnavailable,
     ResolvedImage,
     parse_reference,
 )
+from server.images import RegistryClient
 from server.models import State, Submission
 from server.observability import HttpMetrics, ServiceCollector
 from server.ratelimit import MemoryRateLimiter, RateLimiter

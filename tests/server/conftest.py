@@ -22,7 +22,7 @@ from server import accounts
 from server.app import create_app, image_resolver
 from server.challenges import ChallengeOptions, load_challenge
 from server.db import make_engine, session_factory, upgrade
-from server.images import ImageReference, ResolvedImage
+from server.image_refs import ImageReference, ResolvedImage
 from server.models import Base, Challenge, Submission, User
 from server.ratelimit import MemoryRateLimiter
 from server.settings import Settings

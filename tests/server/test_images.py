@@ -1,4 +1,4 @@
-"""server.images: the reference grammar, and resolving against a real distribution registry.
+"""The reference grammar (server.image_refs) and resolving against a real registry (images).
 
 The grammar tests compare parse_reference with an independent transcription of
 distribution/reference's regexp.go. The registry tests push images over the distribution HTTP
@@ -20,26 +20,28 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from server.images import (
-    DOCKER_MANIFEST,
-    DOCKER_MANIFEST_LIST,
-    OCI_INDEX,
-    OCI_MANIFEST,
+from server.image_refs import (
     ImageError,
     ImageNotFound,
     ImageReference,
     ImageReferenceError,
     ImageTooLarge,
     InvalidManifest,
-    RegistryClient,
     RegistryNotAllowed,
     RegistryUnavailable,
     ResolvedImage,
     UnsupportedPlatform,
+    parse_reference,
+)
+from server.images import (
+    DOCKER_MANIFEST,
+    DOCKER_MANIFEST_LIST,
+    OCI_INDEX,
+    OCI_MANIFEST,
+    RegistryClient,
     amd64_entry,
     image_size,
     parse_challenge,
-    parse_reference,
     verify_digest,
 )
 from tests.server.registry_fixture import (  # noqa: F401 - fixture_*: pytest fixtures
