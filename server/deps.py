@@ -6,7 +6,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Annotated
 
-from fastapi import Depends, Request
+from fastapi import Depends, Query, Request
+from fastapi import Path as FastAPIPath
 from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import sessionmaker
 
@@ -129,3 +130,8 @@ def limit(request: Request, action: str, *, user: User | None = None, key: str =
                 f"too many {action} requests; try again in {decision.retry_after:.0f} s",
                 retry_after=decision.retry_after,
             )
+
+
+PageNo = Annotated[int, Query(ge=1, le=100_000)]
+Id = Annotated[int, FastAPIPath(ge=1, le=2**31 - 1)]
+PerPage = Annotated[int, Query(ge=1, le=200)]

@@ -10,11 +10,10 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session as DB
 
 from server import accounts
-from server.deps import SESSION_COOKIE, DBDep, limit, services
+from server.deps import SESSION_COOKIE, DBDep, Id, limit, services
 from server.errors import AppError, NotFound
 from server.models import ApiToken, User
 from server.web_support import (
-    Id,
     PostedDep,
     Viewer,
     ViewerDep,

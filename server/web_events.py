@@ -26,11 +26,10 @@ from sqlalchemy.orm import sessionmaker
 from starlette.concurrency import run_in_threadpool
 
 from server import accounts
-from server.deps import SESSION_COOKIE, services
+from server.deps import SESSION_COOKIE, Id, services
 from server.errors import Unavailable
 from server.models import State, Submission, Transition, User
 from server.submissions import get_visible, visible_to
-from server.web_support import Id
 
 router = APIRouter(include_in_schema=False)
 

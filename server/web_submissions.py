@@ -16,7 +16,7 @@ from fastapi.responses import FileResponse, Response
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DB
 
-from server.deps import DBDep, services
+from server.deps import DBDep, Id, services
 from server.errors import Forbidden, NotFound
 from server.ingest import condition_means, episode_rows, task_rows
 from server.models import (
@@ -28,7 +28,7 @@ from server.models import (
 )
 from server.submissions import cancel, edit, get_visible, owned_or_admin, rerun
 from server.web_charts import TaskSuccess, success_bars
-from server.web_support import Id, PostedDep, Viewer, ViewerDep, redirect, render, signed_in
+from server.web_support import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
 
 router = APIRouter(include_in_schema=False)
 

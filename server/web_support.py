@@ -17,7 +17,6 @@ from urllib.parse import quote, urlencode, urlsplit
 
 import jinja2
 from fastapi import Depends, Form, Request
-from fastapi import Path as FastAPIPath
 from fastapi.responses import HTMLResponse, Response
 
 from server import accounts, security
@@ -161,7 +160,6 @@ def posted(request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] 
 
 
 PostedDep = Annotated[Viewer, Depends(posted)]
-Id = Annotated[int, FastAPIPath(ge=1, le=2**31 - 1)]
 
 
 class LoginRequired(Exception):
