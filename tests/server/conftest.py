@@ -11,6 +11,7 @@ import os
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,14 @@ from fastapi.testclient import TestClient
 from sqlalchemy import Engine, create_engine, text
 from sqlalchemy.orm import Session, sessionmaker
 
+from evaluator.results import (
+    ConditionResult,
+    EpisodeResult,
+    EvaluationResult,
+    SuiteRef,
+    Versions,
+    aggregate_task,
+)
 from server import accounts
 from server.app import create_app, image_resolver
 from server.challenges import ChallengeOptions, load_challenge
@@ -163,6 +172,41 @@ def queue_submission(
         description="",
         public=True,
         resolve=lambda _image: Resolved(pinned="x@sha256:" + "0" * 64, size_bytes=1),
+    )
+
+
+def result_doc(
+    successes: list[bool], *, phase: str = "dev", conditions: tuple[str, ...] = ("nominal",)
+) -> EvaluationResult:
+    """A completed result of PickCube-v1 on the server-tiny suite: these episode outcomes,
+    the same task under every condition."""
+    episodes = [
+        EpisodeResult(
+            index=i,
+            seed=1000 + i,
+            success_once=ok,
+            success_at_end=ok,
+            steps=10,
+            episode_return=1.0,
+            wall_time_s=0.1,
+        )
+        for i, ok in enumerate(successes)
+    ]
+    task = aggregate_task("PickCube-v1", len(episodes), episodes)
+    now = datetime.now(UTC)
+    return EvaluationResult(
+        suite=SuiteRef(name="server-tiny", version=1, sha256="0" * 64),
+        phase=phase,
+        policy="test",
+        versions=Versions(manieval="0", mani_skill="0", sapien="0", torch="0", python="3"),
+        started_at=now,
+        finished_at=now,
+        status="completed",
+        score=task.success_rate,
+        conditions=[
+            ConditionResult(name=name, params={"kind": name}, score=task.success_rate, tasks=[task])
+            for name in conditions
+        ],
     )
 
 

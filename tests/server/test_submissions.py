@@ -11,14 +11,6 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from evaluator.results import (
-    ConditionResult,
-    EpisodeResult,
-    EvaluationResult,
-    SuiteRef,
-    Versions,
-    aggregate_task,
-)
 from server.ingest import report_final, report_state
 from server.models import Outbox, State, Submission, Transition
 from server.submissions import transition
@@ -26,43 +18,12 @@ from tests.server.conftest import (
     RecordingQueue,
     make_challenge,
     make_user,
+    result_doc,
     token_for,
 )
 
 API = "/api/v1"
 IMAGE = "127.0.0.1:5000/team/policy:v1"
-
-
-def result_doc(successes: list[bool], *, phase: str = "dev") -> EvaluationResult:
-    episodes = [
-        EpisodeResult(
-            index=i,
-            seed=1000 + i,
-            success_once=ok,
-            success_at_end=ok,
-            steps=10,
-            episode_return=1.0,
-            wall_time_s=0.1,
-        )
-        for i, ok in enumerate(successes)
-    ]
-    task = aggregate_task("PickCube-v1", len(episodes), episodes)
-    now = datetime.now(UTC)
-    return EvaluationResult(
-        suite=SuiteRef(name="server-tiny", version=1, sha256="0" * 64),
-        phase=phase,
-        policy="test",
-        versions=Versions(manieval="0", mani_skill="0", sapien="0", torch="0", python="3"),
-        started_at=now,
-        finished_at=now,
-        status="completed",
-        score=task.success_rate,
-        conditions=[
-            ConditionResult(
-                name="nominal", params={"kind": "nominal"}, score=task.success_rate, tasks=[task]
-            ),
-        ],
-    )
 
 
 def finish(db: Session, submission_id: int, successes: list[bool]) -> None:

@@ -4,23 +4,18 @@ token, and submissions run to a final state through the worker's reporting path.
 from __future__ import annotations
 
 import re
-from datetime import UTC, datetime
 
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
 from evaluator.results import (
-    ConditionResult,
-    EpisodeResult,
-    EvaluationResult,
-    SuiteRef,
-    Versions,
     Video,
-    aggregate_task,
 )
 from server.ingest import report_final, report_state
 from server.models import Challenge, State, Submission, User
-from tests.server.conftest import PASSWORD, queue_submission
+from tests.server.conftest import PASSWORD, queue_submission, result_doc
+
+WEB_CONDITIONS = ("nominal", "obs_noise")  # the server-tiny suite's conditions
 
 CSRF = re.compile(r'name="csrf_token" value="([^"]*)"')
 
@@ -44,39 +39,6 @@ def browser(client: TestClient, username: str | None = None) -> TestClient:
     return other
 
 
-def result_doc(
-    successes: list[bool], *, conditions: tuple[str, ...] = ("nominal", "obs_noise")
-) -> EvaluationResult:
-    episodes = [
-        EpisodeResult(
-            index=i,
-            seed=1000 + i,
-            success_once=ok,
-            success_at_end=ok,
-            steps=10,
-            episode_return=1.0,
-            wall_time_s=0.1,
-        )
-        for i, ok in enumerate(successes)
-    ]
-    task = aggregate_task("PickCube-v1", len(episodes), episodes)
-    now = datetime.now(UTC)
-    return EvaluationResult(
-        suite=SuiteRef(name="server-tiny", version=1, sha256="0" * 64),
-        phase="dev",
-        policy="test",
-        versions=Versions(manieval="0", mani_skill="0", sapien="0", torch="0", python="3"),
-        started_at=now,
-        finished_at=now,
-        status="completed",
-        score=task.success_rate,
-        conditions=[
-            ConditionResult(name=name, params={"kind": name}, score=task.success_rate, tasks=[task])
-            for name in conditions
-        ],
-    )
-
-
 def finished(
     db: Session,
     user: User,
@@ -97,7 +59,7 @@ def finished(
     db.flush()
     assert report_state(db, s.id, 1, State.LAUNCHING, "starting")
     assert report_state(db, s.id, 1, State.RUNNING, "evaluating")
-    doc = result_doc(successes)
+    doc = result_doc(successes, conditions=WEB_CONDITIONS)
     if videos:
         doc = doc.model_copy(update={"videos": videos})
     result = doc if state == State.SUCCEEDED else None

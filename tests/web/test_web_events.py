@@ -24,7 +24,7 @@ from tests.server.conftest import (
     make_user,
     queue_submission,
 )
-from tests.web.helpers import browser, result_doc
+from tests.web.helpers import WEB_CONDITIONS, browser, result_doc
 
 
 @dataclass
@@ -82,7 +82,14 @@ def step(sessions: sessionmaker[Session], change: str, sid: int) -> None:
         elif change == "progress":
             report_progress(db, sid, 1, {"done": 1, "total": 4, "task": "PickCube-v1"})
         else:
-            report_final(db, sid, 1, State.SUCCEEDED, "all episodes ran", result=result_doc([True]))
+            report_final(
+                db,
+                sid,
+                1,
+                State.SUCCEEDED,
+                "all episodes ran",
+                result=result_doc([True], conditions=WEB_CONDITIONS),
+            )
 
 
 def test_the_stream_follows_each_change_and_closes_at_the_final_state(
