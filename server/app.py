@@ -261,9 +261,9 @@ def _sweep(
     """Send what the outbox still holds; in the embedded mode also reconcile (with Celery,
     beat does that)."""
     from worker.reconcile import reconcile
-    from worker.run import container_cleaners
+    from worker.run import runtime_cleaners
 
-    cleaners = container_cleaners(settings)
+    cleaners = runtime_cleaners(settings)
     passes = 0
     while not stop.wait(SWEEP_INTERVAL_S):
         dispatcher.dispatch()

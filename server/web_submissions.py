@@ -149,6 +149,25 @@ def _admin(request: Request, who: Viewer) -> User:
 Flag = Annotated[str, Form(pattern="^(true|false)$")]
 
 
+def _edit(
+    request: Request,
+    who: Viewer,
+    db: DB,
+    submission_id: int,
+    *,
+    admin: bool = False,
+    public: bool | None = None,
+    hidden: bool | None = None,
+    baseline: bool | None = None,
+) -> Response:
+    """An owner's (or, with `admin`, only an admin's) change of a flag, then back to the page."""
+    user = _admin(request, who) if admin else signed_in(request, who)
+    s = _mine(db, submission_id, user)
+    edit(db, user, s, public=public, hidden=hidden, baseline=baseline)
+    db.commit()
+    return redirect(f"/submissions/{s.id}")
+
+
 @router.post("/submissions/{submission_id}/cancel")
 def cancel_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep) -> Response:
     user = signed_in(request, who)
@@ -162,11 +181,7 @@ def cancel_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep
 def visibility_action(
     submission_id: Id, request: Request, who: PostedDep, db: DBDep, public: Flag
 ) -> Response:
-    user = signed_in(request, who)
-    s = _mine(db, submission_id, user)
-    edit(db, user, s, public=public == "true")
-    db.commit()
-    return redirect(f"/submissions/{s.id}")
+    return _edit(request, who, db, submission_id, public=public == "true")
 
 
 @router.post("/submissions/{submission_id}/rerun")
@@ -183,19 +198,11 @@ def rerun_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep)
 def hidden_action(
     submission_id: Id, request: Request, who: PostedDep, db: DBDep, hidden: Flag
 ) -> Response:
-    admin = _admin(request, who)
-    s = _mine(db, submission_id, admin)
-    edit(db, admin, s, hidden=hidden == "true")
-    db.commit()
-    return redirect(f"/submissions/{s.id}")
+    return _edit(request, who, db, submission_id, admin=True, hidden=hidden == "true")
 
 
 @router.post("/submissions/{submission_id}/baseline")
 def baseline_action(
     submission_id: Id, request: Request, who: PostedDep, db: DBDep, baseline: Flag
 ) -> Response:
-    admin = _admin(request, who)
-    s = _mine(db, submission_id, admin)
-    edit(db, admin, s, baseline=baseline == "true")
-    db.commit()
-    return redirect(f"/submissions/{s.id}")
+    return _edit(request, who, db, submission_id, admin=True, baseline=baseline == "true")

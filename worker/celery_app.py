@@ -74,13 +74,13 @@ def _run_next(submission_id: int = 0, attempt: int = 0) -> Any:
 
 def _reconcile() -> Any:
     from worker.reconcile import reconcile
-    from worker.run import container_cleaners, job_resumer
+    from worker.run import job_resumer, runtime_cleaners
 
     queue = CeleryQueue(_settings())
     report = reconcile(
         _sessions(),
         queue,
-        cleaners=container_cleaners(_settings()),
+        cleaners=runtime_cleaners(_settings()),
         resume=job_resumer(_settings(), queue.watch),
     )
     return {

@@ -74,7 +74,7 @@ def policy_source(
     )
 
 
-def container_cleaners(settings: Settings) -> list[Cleaner]:
+def runtime_cleaners(settings: Settings) -> list[Cleaner]:
     """The reconciler's view of what runs evaluations: remove the containers and Jobs of
     attempts that are no longer active (a worker crashed, or lost its connection)."""
     cleaners: list[Cleaner] = []

@@ -45,7 +45,7 @@ from worker.k8s_executor import KubernetesExecutor
 from worker.k8s_run import resume_watch, run_as_job
 from worker.kubernetes import build_job, job_name
 from worker.reconcile import reconcile
-from worker.run import container_cleaners, job_resumer, run_next
+from worker.run import job_resumer, run_next, runtime_cleaners
 from worker.scheduling import claim_next
 
 STARTED = datetime(2026, 5, 1, tzinfo=UTC)
@@ -337,7 +337,7 @@ def test_the_reconciler_deletes_jobs_of_attempts_no_longer_active(
 ) -> None:
     name = job_name(queued.id, 1)
     run = start(committed_sessions, k8s_settings, apiserver, queued.id)
-    (clean,) = container_cleaners(k8s_settings)
+    (clean,) = runtime_cleaners(k8s_settings)
     assert clean({(queued.id, 1)}) == []  # active: kept
     assert clean(set()) == [name]  # e.g. its worker died and the attempt was ended
     assert run.wait() == State.ERROR  # the worker watching it sees it gone, and says so
@@ -392,7 +392,7 @@ def test_a_young_job_of_an_attempt_not_yet_seen_active_is_kept(
     run = start(committed_sessions, k8s_settings, apiserver, queued.id)
     now = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     apiserver.jobs[(NAMESPACE, name)]["metadata"]["creationTimestamp"] = now
-    (clean,) = container_cleaners(k8s_settings)
+    (clean,) = runtime_cleaners(k8s_settings)
     assert clean(set()) == []  # just created: the reconciler's snapshot may predate it
     apiserver.fail(NAMESPACE, name)
     assert run.wait() == State.ERROR
