@@ -1,7 +1,7 @@
 """Run an evaluation, or one shard of it, inside a Kubernetes pod next to the policy's container.
 
-The worker builds the Job (`worker/kubernetes.py`). Kubernetes starts the policy in its own
-container; it connects to the Unix socket this process listens on, in a volume both containers
+The worker builds the Job (`worker/kubernetes/manifest.py`). Kubernetes starts the policy in its
+own container; it connects to the Unix socket this process listens on, in a volume both containers
 mount. The outcome goes to stdout between marker lines, where the worker reads it from the
 pod's log: the pod holds no credential, and nothing in it can write a result anywhere.
 """

@@ -93,7 +93,7 @@ def _reconcile() -> Any:
 
 def _watch(submission_id: int, attempt: int) -> Any:
     """Take over watching a running attempt's Job (its first watcher was lost)."""
-    from worker.k8s_run import resume_watch
+    from worker.kubernetes.watch import resume_watch
 
     state = resume_watch(_sessions(), _settings(), submission_id, attempt)
     return {"submission": submission_id, "state": state.value if state else None}

@@ -4,7 +4,7 @@ The same code runs in the embedded server's worker thread and in a Celery task: 
 reloads state, returns early when there is nothing left to do, and every path out of it,
 including an exception of ours, ends the attempt with a reason. Bundled `local:` policies and
 the `docker` executor evaluate here, in the worker; with `kubernetes` the attempt becomes a Job
-(`worker.k8s_run`) and this process watches it.
+(`worker.kubernetes.watch`) and this process watches it.
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def runtime_cleaners(settings: Settings) -> list[Cleaner]:
     if settings.executor == "kubernetes":
 
         def clean_jobs(active: set[tuple[int, int]]) -> list[str]:
-            from worker.k8s_run import kubernetes_executor
+            from worker.kubernetes.watch import kubernetes_executor
 
             executor = kubernetes_executor(settings)
             try:
@@ -110,7 +110,7 @@ def job_resumer(settings: Settings, send: Callable[[int, int], None]) -> Resumer
         return None
 
     def resume(submission_id: int, attempt: int) -> bool:
-        from worker.k8s_run import kubernetes_executor
+        from worker.kubernetes.watch import kubernetes_executor
 
         executor = kubernetes_executor(settings)
         try:
@@ -155,7 +155,7 @@ def execute(
         phase = submission.phase.name
         pinned = submission.pinned_image
     if settings.executor == "kubernetes" and not pinned.startswith(LOCAL_PREFIX):
-        from worker.k8s_run import run_as_job
+        from worker.kubernetes.watch import run_as_job
 
         return run_as_job(
             sessions,

@@ -50,8 +50,8 @@ SCRIPT = textwrap.dedent(
 
     from evaluator.plan import build_plan
     from evaluator.suite import SUITES_DIR, load_suite
-    from worker.k8s_run import job_spec
-    from worker.kubernetes import build_job
+    from worker.kubernetes.watch import job_spec
+    from worker.kubernetes.manifest import build_job
 
     suite = load_suite("maniskill-core")
     plan = build_plan(suite, "dev")

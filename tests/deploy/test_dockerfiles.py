@@ -29,7 +29,7 @@ from tests.deploy.dockerfiles import (
 )
 from tests.deploy.manifests import REPO, container, render
 from worker.containers import POLICY_UID
-from worker.kubernetes import EVALUATOR_UID, SHARED_GID
+from worker.kubernetes.manifest import EVALUATOR_UID, SHARED_GID
 
 
 def _load_requirements() -> ModuleType:

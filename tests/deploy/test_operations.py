@@ -30,8 +30,8 @@ from tests.deploy.manifests import (
     render,
 )
 from tests.worker.test_k8s_manifest import restricted_violations
-from worker.k8s_run import job_spec
-from worker.kubernetes import active_deadline_for, build_job
+from worker.kubernetes.watch import job_spec
+from worker.kubernetes.manifest import active_deadline_for, build_job
 
 PINNED = re.compile(r"^[a-z0-9][^\s@]*@sha256:[0-9a-f]{64}$")
 SECRET_KEYS = {

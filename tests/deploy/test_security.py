@@ -25,7 +25,7 @@ from tests.deploy.manifests import (
     selects,
 )
 from tests.worker.test_k8s_manifest import restricted_violations
-from worker.kubernetes import build_network_policy, job_labels
+from worker.kubernetes.manifest import build_network_policy, job_labels
 
 WORKER_SA = {"kind": "ServiceAccount", "name": "manieval-worker", "namespace": CONTROL_PLANE}
 WORKER_MAY = {

@@ -32,8 +32,8 @@ import kubernetes_validate
 from kubernetes.client import ApiClient, Configuration
 
 from evaluator.job import EvaluationJob
-from worker.k8s_executor import Backoff, KubernetesExecutor
-from worker.kubernetes import INDEX_LABEL, JobSpec, Resources
+from worker.kubernetes.client import Backoff, KubernetesExecutor
+from worker.kubernetes.manifest import INDEX_LABEL, JobSpec, Resources
 
 NAMESPACE = "manieval-eval"
 SCHEMA_VERSION = "1.30"

@@ -20,8 +20,8 @@ from tests.worker.k8s_double import (
     make_spec,
     running_apiserver,
 )
-from worker.k8s_executor import Backoff, JobConflict, JobStatus, KubernetesError, StartedJob
-from worker.kubernetes import build_job, job_labels
+from worker.kubernetes.client import Backoff, JobConflict, JobStatus, KubernetesError, StartedJob
+from worker.kubernetes.manifest import build_job, job_labels
 
 STARTED = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
 

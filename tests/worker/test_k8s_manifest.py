@@ -17,7 +17,7 @@ from kubernetes_validate.utils import latest_version
 from evaluator.job import ENDPOINT_DIR, JOB_SPEC_ENV, SHARDS_ENV, EvaluationJob
 from manieval_sdk.serve import ENDPOINT_ENV
 from tests.worker.k8s_double import TINY_SUITE, make_spec, tiny_evaluation
-from worker.kubernetes import (
+from worker.kubernetes.manifest import (
     GPU_RESOURCE,
     MAX_PAYLOAD_BYTES,
     JobSpec,

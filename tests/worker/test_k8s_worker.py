@@ -41,9 +41,9 @@ from tests.worker.k8s_double import (
     make_spec,
     running_apiserver,
 )
-from worker.k8s_executor import KubernetesExecutor
-from worker.k8s_run import resume_watch, run_as_job
-from worker.kubernetes import build_job, job_name
+from worker.kubernetes.client import KubernetesExecutor
+from worker.kubernetes.watch import resume_watch, run_as_job
+from worker.kubernetes.manifest import build_job, job_name
 from worker.reconcile import reconcile
 from worker.run import job_resumer, run_next, runtime_cleaners
 from worker.scheduling import claim_next

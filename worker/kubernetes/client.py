@@ -27,7 +27,7 @@ from kubernetes.client import (
     V1Pod,
 )
 
-from worker.kubernetes import (
+from worker.kubernetes.manifest import (
     APP,
     APP_LABEL,
     ATTEMPT_LABEL,

@@ -1,7 +1,7 @@
 """Run one attempt as a Kubernetes Job and watch it to a final state.
 
-The worker builds the Job (`worker.kubernetes.build_job`), creates it (adopting it on 409), then
-looks every `k8s_poll_interval` seconds: the Job's conditions decide the end, the pods say when
+The worker builds the Job (`worker.kubernetes.manifest.build_job`), creates it (adopting it on
+409), then looks every `k8s_poll_interval` seconds: the Job's conditions decide the end, the pods say when
 an image cannot be pulled (no point waiting for the deadline), and the evaluator's log gives the
 progress. Each look is also the attempt's heartbeat; when the database says the attempt is no
 longer running (cancelled, timed out by the reconciler) the Job is deleted. The result is read
@@ -28,8 +28,8 @@ from evaluator.suite import Suite
 from server.ingest import report_progress
 from server.models import State, Submission, utcnow
 from server.settings import Settings
-from worker.k8s_executor import JobConflict, JobStatus, KubernetesError, KubernetesExecutor
-from worker.kubernetes import (
+from worker.kubernetes.client import JobConflict, JobStatus, KubernetesError, KubernetesExecutor
+from worker.kubernetes.manifest import (
     EVALUATOR,
     POLICY,
     JobSpec,

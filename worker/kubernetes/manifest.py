@@ -8,7 +8,7 @@ decides the pod's outcome. Both containers run under the "restricted" Pod Securi
 with no service-account token and no service links. They share one memory-backed emptyDir that
 holds the evaluator's Unix socket; the policy mounts it read-only (connecting to a socket needs
 no write access to the mount) and gets nothing else: no other volume, no env but
-MANIEVAL_ENDPOINT. `worker.k8s_executor` creates, adopts, reads, and deletes those Jobs.
+MANIEVAL_ENDPOINT. `worker.kubernetes.client` creates, adopts, reads, and deletes those Jobs.
 """
 
 from __future__ import annotations
