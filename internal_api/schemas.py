@@ -1,0 +1,127 @@
+"""What travels over ``/internal/v1``: claims, the evaluation a worker is handed, its reports.
+
+Every report names its (submission, attempt) in the URL and is idempotent: the server applies
+it once, answers an identical repeat with the same outcome, and refuses a report about an
+attempt that is no longer the submission's current one (409), so a late worker cannot
+overwrite a re-run.
+"""
+
+from __future__ import annotations
+
+import enum
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from evaluator.plan import EvaluationPlan
+from evaluator.results import EvaluationResult
+
+REASON_LIMIT = 2000
+LOG_TAIL_LIMIT = 64 * 1024
+Progress = dict[str, int | float | str]
+
+
+class State(enum.StrEnum):
+    """Where a submission's current attempt stands."""
+
+    QUEUED = "queued"
+    LAUNCHING = "launching"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"  # the policy's fault
+    ERROR = "error"  # ours
+    CANCELLED = "cancelled"
+    TIMED_OUT = "timed_out"
+
+    @property
+    def final(self) -> bool:
+        return self in FINAL_STATES
+
+
+FINAL_STATES = frozenset(
+    {State.SUCCEEDED, State.FAILED, State.ERROR, State.CANCELLED, State.TIMED_OUT}
+)
+ACTIVE_STATES = frozenset({State.QUEUED, State.LAUNCHING, State.RUNNING})
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ClaimIn(_Body):
+    worker: str = Field(min_length=1, max_length=200, pattern=r"^[\x21-\x7e]+$")
+    """Who claims (printable ASCII, no spaces): recorded with the attempt, so that a worker
+    that restarts can say which of its attempts died with it."""
+
+
+class Assignment(BaseModel):
+    """A claimed attempt, with everything a worker needs to run it and nothing secret."""
+
+    submission_id: int
+    attempt: int
+    image: str
+    """The pinned image reference (``repo@sha256:...``), or ``local:NAME``."""
+    plan: EvaluationPlan
+    """The evaluation with its concrete seeds: the worker never holds the seed secret."""
+    suite_yaml: str
+    """The suite's text, for an evaluator that runs elsewhere (a Kubernetes Job)."""
+    shards: int = Field(ge=1)
+    """Into how many pods a Kubernetes Job may split the episodes."""
+
+
+class RunningReport(_Body):
+    reason: str = Field(min_length=1, max_length=REASON_LIMIT)
+    deadline_s: float = Field(gt=0, le=30 * 86400)
+    """Seconds from now after which the server times the attempt out."""
+
+
+class ProgressReport(_Body):
+    progress: Progress | None = None
+    """None: a heartbeat only (the last progress stays)."""
+
+
+class FinalReport(_Body):
+    state: State
+    reason: str = Field(min_length=1, max_length=REASON_LIMIT)
+    result: EvaluationResult | None = None
+    log_tail: str = Field(default="", max_length=LOG_TAIL_LIMIT)
+
+    @field_validator("state")
+    @classmethod
+    def _final(cls, state: State) -> State:
+        if not state.final:
+            raise ValueError(f"{state.value} is not a final state")
+        return state
+
+
+class ReportOut(BaseModel):
+    applied: bool
+    """False: the report no longer applies (the attempt was cancelled or ended elsewhere)."""
+    state: State
+    """The submission's state after the report."""
+
+
+class AttemptRef(BaseModel):
+    submission_id: int
+    attempt: int
+
+
+class Silent(BaseModel):
+    """Running attempts whose worker has not reported within the heartbeat timeout."""
+
+    attempts: list[AttemptRef]
+
+
+class ReconcileOut(BaseModel):
+    """What one reconciling pass did, and which attempts are still active."""
+
+    timed_out: list[int] = Field(default_factory=list)
+    lost: list[int] = Field(default_factory=list)
+    requeued: list[int] = Field(default_factory=list)
+    woken: int = 0
+    active: list[AttemptRef] = Field(default_factory=list)
+
+
+class RestartOut(BaseModel):
+    """The attempts a restarted worker had in flight, now ended."""
+
+    ended: list[int]
