@@ -1,0 +1,95 @@
+"""The worker's settings: one object, read from ``MANIEVAL_*`` environment variables.
+
+A worker holds no database URL and no server secret: it reaches the server through
+``/internal/v1`` with the worker token, and the broker for wake-ups. Every field is documented
+in ``docs/server.md`` (Workers).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+from typing import Literal
+
+import platformdirs
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+def _default_data_dir() -> Path:
+    return Path(platformdirs.user_data_dir("manieval", appauthor=False))
+
+
+def _default_name() -> str:
+    return f"{socket.gethostname()}-{os.getpid()}"
+
+
+class WorkerSettings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="MANIEVAL_", extra="ignore", frozen=True)
+
+    server_url: str = "http://127.0.0.1:8000"
+    """The ManiEval server the worker reports to (its ``/internal/v1``)."""
+    worker_token: SecretStr
+    """The bearer token of the internal API (the server's ``MANIEVAL_WORKER_TOKEN``)."""
+    worker_name: str = Field(default_factory=_default_name, pattern=r"^[\x21-\x7e]{1,200}$")
+    """Recorded with each attempt it claims; a stable name (a StatefulSet pod's, ``embedded``)
+    lets a restarted worker end the attempts that died with it at once."""
+
+    broker_url: str = "redis://127.0.0.1:6379/0"
+    celery_queue: str = "manieval"
+    reconcile_queue: str = "manieval-reconcile"
+    """The reconciler's own queue: busy evaluation workers never delay it."""
+
+    data_dir: Path = Field(default_factory=_default_data_dir)
+    spool_dir: Path | None = None
+    """Final reports not yet accepted by the server (default ``<data_dir>/spool``): kept across
+    a restart and sent again when the worker starts."""
+    report_patience_s: float = Field(default=900.0, gt=0)
+    """How long a final report is retried before it is left in the spool for the next start."""
+    claim_patience_s: float = Field(default=300.0, gt=0)
+    """How long a claim is retried while the server or its database is down."""
+    request_timeout_s: float = Field(default=30.0, gt=0)
+
+    allow_local_policies: bool = False
+    """Run ``local:NAME`` submissions (the bundled example policies; demo only)."""
+    docker_engine_url: str | None = None
+    """Docker-API engine that runs policy images (Docker, or Podman's API service, e.g.
+    ``unix:///run/manieval/podman.sock``); unset: image submissions end ``error``."""
+    policy_memory_mib: int = Field(default=2048, ge=64)
+    policy_cpus: float = Field(default=1.0, gt=0)
+
+    executor: Literal["docker", "kubernetes"] = "docker"
+    """Where policy images run: ``docker`` (the engine above, evaluator in the worker) or
+    ``kubernetes`` (one Job per attempt, evaluator and policy in its pod). Bundled
+    ``local:`` policies always run in the worker, when allowed."""
+    k8s_namespace: str = "manieval-eval"
+    k8s_in_cluster: bool = False
+    k8s_kubeconfig: Path | None = None
+    k8s_api_url: str | None = None
+    evaluator_image: str | None = None
+    evaluator_cpu: str = "2"
+    evaluator_memory: str = "4Gi"
+    k8s_runtime_class: str | None = None
+    k8s_poll_interval: float = Field(default=5.0, gt=0, le=300)
+
+    log_format: Literal["text", "json"] = "text"
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+
+    @field_validator("server_url")
+    @classmethod
+    def _url(cls, value: str) -> str:
+        if not value.startswith(("http://", "https://")):
+            raise ValueError("MANIEVAL_SERVER_URL must start with http:// or https://")
+        return value.rstrip("/")
+
+    @field_validator("worker_token")
+    @classmethod
+    def _token(cls, value: SecretStr) -> SecretStr:
+        if len(value.get_secret_value()) < 32:
+            raise ValueError("MANIEVAL_WORKER_TOKEN must be at least 32 characters")
+        return value
+
+    @property
+    def resolved_spool_dir(self) -> Path:
+        return self.spool_dir or self.data_dir / "spool"
