@@ -1,11 +1,12 @@
 """Run one attempt as a Kubernetes Job and watch it to a final state.
 
 The worker builds the Job (`worker.kubernetes.manifest.build_job`), creates it (adopting it on
-409), then looks every `k8s_poll_interval` seconds: the Job's conditions decide the end, the pods say when
-an image cannot be pulled (no point waiting for the deadline), and the evaluator's log gives the
-progress. Each look is also the attempt's heartbeat; when the database says the attempt is no
-longer running (cancelled, timed out by the reconciler) the Job is deleted. The result is read
-from the evaluator's log by this process: nothing in the pod can write one.
+409), then looks every `k8s_poll_interval` seconds: the Job's conditions decide the end, the
+pods say when an image cannot be pulled (no point waiting for the deadline), and the
+evaluator's log gives the progress. Each look is also the attempt's heartbeat; when the server
+says the attempt is no longer running (cancelled, timed out by the reconciler) the Job is
+deleted. The result is read from the evaluator's log by this process: nothing in the pod can
+write one.
 """
 
 from __future__ import annotations
