@@ -2,9 +2,9 @@
 
 import typer
 
-from evaluator.cli import evaluate
 from evaluator.job import evaluate_job
 from manieval import account, participant
+from manieval.evaluate import evaluate
 from server.cli import admin_app, challenge_app, db_app, demo, serve
 
 app = typer.Typer(

@@ -96,6 +96,7 @@ def _source(policy: Path | None, image: str | None, engine: str | None) -> Polic
         return LocalDirectory(policy)
     assert image is not None
     # The worker's docker executor, so that a participant tests the exact submission path.
+    # Imported here: only --image needs it, and the evaluator itself never depends on worker/.
     from worker.containers import DEFAULT_ENGINE_URL, ContainerImage, ExecutorError, pin_local
     from worker.containers import engine as connect
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import textwrap
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,6 +15,20 @@ from tests.evaluator.conftest import HERE, REACTIVE_POLICY, REPO
 
 MANIEVAL = REPO / ".venv" / "bin" / "manieval"
 TINY = str(HERE / "tiny_suite.yaml")
+
+
+@pytest.fixture
+def make_policy(tmp_path: Path) -> Callable[[str], Path]:
+    """Write `policy.py` with the given source into a fresh directory."""
+    counter = iter(range(1000))
+
+    def write(source: str) -> Path:
+        directory = tmp_path / f"policy{next(counter)}"
+        directory.mkdir()
+        (directory / "policy.py").write_text(textwrap.dedent(source))
+        return directory
+
+    return write
 
 
 def manieval(*args: str) -> subprocess.CompletedProcess[str]:
