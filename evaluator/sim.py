@@ -1,7 +1,13 @@
-"""ManiSkill environments as the evaluator uses them: built from a task run, observed as numpy."""
+"""ManiSkill environments as the evaluator uses them: built from a task run, observed as numpy.
+
+Every reset rebuilds the scene (`reconfiguration_freq=1`): ManiSkill 3 keeps PhysX state (contact
+caches, joint accelerations) across a plain `reset(seed)`, so an episode would otherwise depend on
+the episodes run before it in the same environment. See docs/metrics.md for the measured cost.
+"""
 
 from __future__ import annotations
 
+import gc
 from typing import Any
 
 import numpy as np
@@ -16,7 +22,7 @@ def make_env(run: TaskRun, runtime: ConditionRuntime, *, render: bool = False) -
     import mani_skill.envs  # noqa: F401  (registers the ManiSkill environments)
 
     cpu = run.sim_backend == "physx_cpu"
-    return gym.make(
+    env = gym.make(
         run.env_id,
         num_envs=1,
         obs_mode=run.obs_mode,
@@ -25,8 +31,27 @@ def make_env(run: TaskRun, runtime: ConditionRuntime, *, render: bool = False) -
         render_backend="sapien_cpu" if cpu else "gpu",
         render_mode="rgb_array" if render else None,
         max_episode_steps=run.max_episode_steps * 100,  # the evaluator enforces the real limit
+        reconfiguration_freq=1,
         **runtime.env_kwargs(),
     )
+    _freeze_long_lived_objects()
+    return env
+
+
+_frozen = False
+
+
+def _freeze_long_lived_objects() -> None:
+    """Once per process, after the first environment: exempt what exists from garbage collection.
+
+    Each rebuild of the scene runs a full `gc.collect()` (ManiSkill's `_clear`), which otherwise
+    walks every object torch and ManiSkill created at import: most of a rebuild's cost.
+    """
+    global _frozen
+    if not _frozen:
+        gc.collect()
+        gc.freeze()
+        _frozen = True
 
 
 def default_control_freq(env: Any) -> int:

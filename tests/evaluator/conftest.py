@@ -18,6 +18,8 @@ HERE = Path(__file__).parent
 REPO = HERE.parents[1]
 SCRIPTED = REPO / "examples" / "policies" / "scripted"
 RANDOM = REPO / "examples" / "policies" / "random"
+# Fields of an episode's record that measure time: no two runs share them.
+TIMINGS = frozenset({"wall_time_s"})
 
 # A deterministic policy whose actions depend on the observation, so any difference in what the
 # policy sees shows up in the episode records.
@@ -59,9 +61,9 @@ def run(plan: EvaluationPlan, policy: Path, *, workers: int = 1) -> EvaluationRe
 
 
 def episode_records(result: EvaluationResult) -> list[dict[str, object]]:
-    """Every episode's record except its wall time, which no two runs share."""
+    """Every episode's record except its timings, which no two runs share."""
     return [
-        {"condition": c.name, "task": t.env_id, **e.model_dump(exclude={"wall_time_s"})}
+        {"condition": c.name, "task": t.env_id, **e.model_dump(exclude=set(TIMINGS))}
         for c in result.conditions
         for t in c.tasks
         for e in t.episodes

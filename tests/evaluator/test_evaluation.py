@@ -110,7 +110,8 @@ def plain_gym_loop(
     )
     records = []
     for seed in seeds:
-        obs, info = env.reset(seed=seed)
+        # A fresh scene per episode, or PhysX carries state over from the previous one.
+        obs, info = env.reset(seed=seed, options={"reconfigure": True})
         policy.reset(batchless(obs), {})
         once, total, count = False, 0.0, 0
         for _ in range(steps):
