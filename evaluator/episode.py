@@ -36,9 +36,15 @@ def run_episode(
     seed: int,
     step_limit: int,
     bounds: tuple[np.ndarray, np.ndarray],
+    ignore_terminations: bool,
     frames: list[np.ndarray] | None = None,
 ) -> EpisodeResult:
-    """Run one episode; policy-level failures end it as a failure with a reason."""
+    """Run one episode; policy-level failures end it as a failure with a reason.
+
+    With `ignore_terminations` the episode runs to `step_limit` whatever the task signals, and
+    success at the last step is measured; otherwise it ends at the first termination (success)
+    and `success_at_end` is null.
+    """
     started = time.perf_counter()
     low, high = bounds
     raw_obs, _ = env.reset(seed=seed)
@@ -64,7 +70,7 @@ def run_episode(
             success_once = success_once or success_at_end
             if frames is not None:
                 frames.append(to_numpy(env.render()))
-            if flag(terminated) or flag(truncated):
+            if not ignore_terminations and (flag(terminated) or flag(truncated)):
                 break
             seen = runtime.observe(to_numpy(raw_obs))
     except PolicyRaised as exc:
@@ -73,7 +79,7 @@ def run_episode(
         index=index,
         seed=seed,
         success_once=success_once and failure is None,
-        success_at_end=success_at_end and failure is None,
+        success_at_end=(success_at_end and failure is None) if ignore_terminations else None,
         steps=steps,
         episode_return=total,
         wall_time_s=time.perf_counter() - started,

@@ -155,7 +155,14 @@ def build_result(
     for run_index, run in enumerate(plan.runs):
         done = by_run[run_index]
         episodes = [
-            done.get(i) or failed_episode(i, seed, "not_run", "the evaluation stopped before it")
+            done.get(i)
+            or failed_episode(
+                i,
+                seed,
+                "not_run",
+                "the evaluation stopped before it",
+                at_end_measured=plan.ignore_terminations,
+            )
             for i, seed in enumerate(run.seeds)
         ]
         condition = conditions.setdefault(

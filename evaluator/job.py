@@ -80,7 +80,13 @@ class EvaluationJob(BaseModel):
             if task.env_id in self.seeds
         )
         ref = SuiteRef(name=suite.name, version=suite.version, sha256=suite.sha256())
-        return EvaluationPlan(suite=ref, phase=self.phase, limits=suite.limits, runs=runs)
+        return EvaluationPlan(
+            suite=ref,
+            phase=self.phase,
+            limits=suite.limits,
+            runs=runs,
+            ignore_terminations=suite.ignore_terminations,
+        )
 
     def canonical_json(self) -> str:
         """The same job always gives the same text (the Job manifest must be deterministic)."""

@@ -33,6 +33,7 @@ class EvaluationPlan(BaseModel):
     phase: str
     limits: Limits
     runs: tuple[TaskRun, ...]
+    ignore_terminations: bool = False
     record_video: bool = False
 
     def episode_count(self) -> int:
@@ -79,5 +80,6 @@ def build_plan(
         phase=phase,
         limits=suite.limits,
         runs=tuple(runs),
+        ignore_terminations=suite.ignore_terminations,
         record_video=record_video,
     )

@@ -9,7 +9,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from evaluator.stats import wilson_interval
 
-RESULT_SCHEMA_VERSION: Literal["1.0"] = "1.0"
+# 1.1: `success_at_end` is null when the suite does not measure it (episodes that stop at the
+# first success). A 1.0 document still reads as one.
+RESULT_SCHEMA_VERSION: Literal["1.1"] = "1.1"
 
 FailureKind = Literal[
     "invalid_action",
@@ -19,6 +21,10 @@ FailureKind = Literal[
     "protocol_error",
     "budget_exhausted",
     "not_run",
+    # A sandboxed policy ran out of a resource limit and was stopped (evaluator/sandbox.py).
+    "memory_limit",
+    "process_limit",
+    "file_size_limit",
 ]
 
 
@@ -27,12 +33,15 @@ class _Doc(BaseModel):
 
 
 class EpisodeResult(_Doc):
-    """One episode: the seed it ran with and what happened."""
+    """One episode: the seed it ran with and what happened (docs/metrics.md)."""
 
     index: int = Field(ge=0)
     seed: int = Field(ge=0)
     success_once: bool
-    success_at_end: bool
+    success_at_end: bool | None = Field(
+        description="Success at the last step; null when the suite ends episodes at the first "
+        "success, where it would only repeat success_once"
+    )
     steps: int = Field(ge=0)
     episode_return: float
     wall_time_s: float = Field(ge=0)
@@ -51,7 +60,7 @@ class TaskResult(_Doc):
     success_rate: float = Field(ge=0, le=1)
     ci_low: float = Field(ge=0, le=1)
     ci_high: float = Field(ge=0, le=1)
-    success_at_end_rate: float = Field(ge=0, le=1)
+    success_at_end_rate: float | None = Field(ge=0, le=1)
     mean_steps: float = Field(ge=0)
     mean_return: float
     episodes: list[EpisodeResult]
@@ -98,7 +107,7 @@ class SuiteRef(_Doc):
 class EvaluationResult(_Doc):
     """What an evaluation produced: the document the server stores and the CLI prints."""
 
-    schema_version: Literal["1.0"] = RESULT_SCHEMA_VERSION
+    schema_version: Literal["1.0", "1.1"] = RESULT_SCHEMA_VERSION
     suite: SuiteRef
     phase: str
     policy: str
@@ -113,10 +122,16 @@ class EvaluationResult(_Doc):
 
 
 def aggregate_task(env_id: str, planned: int, episodes: list[EpisodeResult]) -> TaskResult:
-    """Summarise a task's episodes; episodes planned but not run count as failures."""
+    """Summarise a task's episodes; episodes planned but not run count as failures.
+
+    The success-at-end rate is null when the episodes do not measure it (they stopped at the
+    first success); a suite either measures it in every episode or in none.
+    """
     successes = sum(e.success_once for e in episodes)
     low, high = wilson_interval(successes, planned)
     ran = max(len(episodes), 1)
+    at_end_measured = all(e.success_at_end is not None for e in episodes)
+    at_end = sum(bool(e.success_at_end) for e in episodes)
     return TaskResult(
         env_id=env_id,
         episodes_planned=planned,
@@ -124,7 +139,7 @@ def aggregate_task(env_id: str, planned: int, episodes: list[EpisodeResult]) -> 
         success_rate=successes / planned if planned else 0.0,
         ci_low=low,
         ci_high=high,
-        success_at_end_rate=sum(e.success_at_end for e in episodes) / planned if planned else 0.0,
+        success_at_end_rate=(at_end / planned if planned else 0.0) if at_end_measured else None,
         mean_steps=sum(e.steps for e in episodes) / ran,
         mean_return=sum(e.episode_return for e in episodes) / ran,
         episodes=episodes,

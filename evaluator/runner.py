@@ -26,7 +26,7 @@ from evaluator.sim import (
     describe_space,
     make_env,
 )
-from evaluator.sources import PolicySource
+from evaluator.sources import PolicySource, limit_reached
 from evaluator.video import write_video
 
 EpisodeCallback = Callable[[int, EpisodeResult], None]
@@ -162,7 +162,13 @@ def _run_task(
             if should_stop():  # cancelled, or another shard aborted: the rest is not run
                 return
             if setup_error is not None:
-                result = failed_episode(index, seed, "policy_error", setup_error)
+                result = failed_episode(
+                    index,
+                    seed,
+                    "policy_error",
+                    setup_error,
+                    at_end_measured=plan.ignore_terminations,
+                )
             else:
                 frames: list[Any] | None = [] if record and index == episodes[0][0] else None
                 result = run_episode(
@@ -173,6 +179,7 @@ def _run_task(
                     seed=seed,
                     step_limit=step_limit,
                     bounds=bounds,
+                    ignore_terminations=plan.ignore_terminations,
                     frames=frames,
                 )
                 if frames and options.video_dir is not None:
@@ -184,7 +191,9 @@ def _run_task(
             outcome.episodes.append((run_index, result))
             on_episode(run_index, result)
     except PolicyFailure as failure:
-        result = failed_episode(index, seed, failure.kind, failure.reason)
+        result = failed_episode(
+            index, seed, failure.kind, failure.reason, at_end_measured=plan.ignore_terminations
+        )
         outcome.episodes.append((run_index, result))
         on_episode(run_index, result)
         outcome.abort = (run_index, index, Abort(kind=failure.kind, reason=failure.reason))
@@ -200,13 +209,15 @@ def _start_task(channel: PolicyChannel, spec: dict[str, Any]) -> str | None:
     return None
 
 
-def failed_episode(index: int, seed: int, kind: FailureKind, reason: str) -> EpisodeResult:
+def failed_episode(
+    index: int, seed: int, kind: FailureKind, reason: str, *, at_end_measured: bool
+) -> EpisodeResult:
     """The record of an episode that ended (or never started) because of the policy."""
     return EpisodeResult(
         index=index,
         seed=seed,
         success_once=False,
-        success_at_end=False,
+        success_at_end=False if at_end_measured else None,
         steps=0,
         episode_return=0.0,
         wall_time_s=0.0,
@@ -249,9 +260,10 @@ def run_shard(
         if outcome.abort is None:  # it broke before the first episode: charge that episode
             first_run, episodes = shard.units[0]
             index, seed = episodes[0]
-            outcome.episodes.append(
-                (first_run, failed_episode(index, seed, failure.kind, failure.reason))
+            charged = failed_episode(
+                index, seed, failure.kind, failure.reason, at_end_measured=plan.ignore_terminations
             )
+            outcome.episodes.append((first_run, charged))
             outcome.abort = (first_run, index, Abort(kind=failure.kind, reason=failure.reason))
     finally:
         code = process.exit_code()  # before stop(): our own SIGTERM is not the policy's exit
@@ -259,14 +271,22 @@ def run_shard(
         process.stop()
     if outcome.abort is not None:
         run_index, index, abort = outcome.abort
+        kind = limit_reached(process) or abort.kind  # a sandbox stopped it at a resource limit
         ended = process.exit_detail() or (None if code in (None, 0) else f"exit code {code}")
         reason = abort.reason if ended is None else f"{abort.reason} ({ended})"
         tail = process.log_tail()
         outcome.abort = (
             run_index,
             index,
-            abort.model_copy(update={"reason": reason, "log_tail": tail}),
+            abort.model_copy(update={"kind": kind, "reason": reason, "log_tail": tail}),
         )
+        if kind != abort.kind:  # the episode it broke in is charged with the limit, too
+            outcome.episodes = [
+                (r, e.model_copy(update={"failure": kind, "failure_reason": reason}))
+                if (r, e.index) == (run_index, index)
+                else (r, e)
+                for r, e in outcome.episodes
+            ]
     return outcome
 
 

@@ -109,6 +109,10 @@ class Suite(_Strict):
     phases: dict[str, Phase] = Field(min_length=1)
     conditions: tuple[Condition, ...] = (Condition(name="nominal", params=Nominal()),)
     limits: Limits = Limits()
+    ignore_terminations: bool = False
+    """As ManiSkill's evaluation does: every episode runs to its step limit, whatever the task
+    signals, so that both `success_once` and `success_at_end` are measured. False ends an
+    episode at its first termination (a success) and reports no `success_at_end`."""
     shards: int = Field(default=1, ge=1, le=64)
     """Pods a submission's episodes are spread over on Kubernetes (an Indexed Job); the other
     executors ignore it. Episodes do not depend on where they ran, so it is not in the hash."""
@@ -150,8 +154,15 @@ class Suite(_Strict):
     def sha256(self) -> str:
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
         content = self.model_dump(mode="json", exclude={"shards"})
+        for name in _HASHED_WHEN_SET:  # suites that do not use a newer setting keep their hash
+            if content[name] == type(self).model_fields[name].default:
+                del content[name]
         canonical = json.dumps(content, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+# Settings added after suites were first published: part of the hash only when not the default.
+_HASHED_WHEN_SET = ("ignore_terminations",)
 
 
 def load_suite(ref: str | Path) -> Suite:

@@ -82,7 +82,7 @@ def batchless(value: Any) -> Any:
 
 
 def plain_gym_loop(
-    policy: Policy, env_id: str, seeds: list[int], steps: int
+    policy: Policy, env_id: str, seeds: list[int], steps: int, *, ignore_terminations: bool
 ) -> list[tuple[Any, ...]]:
     """The same policy in a plain in-process gymnasium loop, written independently."""
     import gymnasium as gym
@@ -122,22 +122,29 @@ def plain_gym_loop(
             count += 1
             total += float(reward[0])
             once = once or bool(info["success"][0])
-            if bool(terminated[0]) or bool(truncated[0]):
+            if not ignore_terminations and (bool(terminated[0]) or bool(truncated[0])):
                 break
-        records.append((seed, once, bool(info["success"][0]), count, total))
+        at_end = bool(info["success"][0]) if ignore_terminations else None
+        records.append((seed, once, at_end, count, total))
     env.close()
     return records
 
 
-@pytest.mark.parametrize("policy_name", ["reactive", "scripted"])
+@pytest.mark.parametrize(
+    ("policy_name", "ignore_terminations"),
+    [("reactive", False), ("scripted", False), ("scripted", True)],
+)
 def test_evaluator_matches_a_plain_gymnasium_loop(
-    make_policy: Callable[[str], Path], policy_name: str
+    make_policy: Callable[[str], Path], policy_name: str, ignore_terminations: bool
 ):
     directory = make_policy(REACTIVE_POLICY) if policy_name == "reactive" else SCRIPTED
     plan = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"], episodes=4)
+    plan = plan.model_copy(update={"ignore_terminations": ignore_terminations})
     if policy_name == "scripted":
+        # Long enough to succeed (about 20 steps), short enough to see the end of the episode.
+        steps = 40 if ignore_terminations else 100
         plan = plan.model_copy(
-            update={"runs": (plan.runs[0].model_copy(update={"max_episode_steps": 100}),)}
+            update={"runs": (plan.runs[0].model_copy(update={"max_episode_steps": steps}),)}
         )
     run_ = plan.runs[0]
     result = run(plan, directory)
@@ -146,10 +153,22 @@ def test_evaluator_matches_a_plain_gymnasium_loop(
         for e in result.conditions[0].tasks[0].episodes
     ]
     policy = load_policy_class(directory)()
-    expected = plain_gym_loop(policy, "PickCube-v1", list(run_.seeds), run_.max_episode_steps)
+    expected = plain_gym_loop(
+        policy,
+        "PickCube-v1",
+        list(run_.seeds),
+        run_.max_episode_steps,
+        ignore_terminations=ignore_terminations,
+    )
     assert got == expected
     if policy_name == "scripted":
         assert sum(r[1] for r in got) >= 3
+    task = result.conditions[0].tasks[0]
+    if ignore_terminations:
+        assert {r[3] for r in got} == {run_.max_episode_steps}  # every episode ran to the limit
+        assert task.success_at_end_rate is not None
+    else:
+        assert task.success_at_end_rate is None
 
 
 def test_the_policy_template_runs_as_shipped():

@@ -128,3 +128,21 @@ def test_plan_refuses_unknown_names(kwargs: dict[str, object], message: str):
 def test_plan_refuses_unknown_phase():
     with pytest.raises(SuiteError, match="no phase 'final'"):
         build_plan(load_suite("maniskill-core"), "final")
+
+
+# The core suite's hash before `ignore_terminations` existed: challenges store it.
+CORE_SUITE_SHA256 = "cdef3d03c550f38c49ad1f0bf92bcce0ccdb67c81feb01fa31027f35b21ebf13"
+
+
+def test_a_suite_that_leaves_a_newer_setting_at_its_default_keeps_its_hash():
+    suite = load_suite("maniskill-core")
+    assert suite.ignore_terminations is False
+    assert suite.sha256() == CORE_SUITE_SHA256
+    assert suite.model_copy(update={"ignore_terminations": True}).sha256() != CORE_SUITE_SHA256
+
+
+def test_ignore_terminations_travels_from_the_suite_into_the_plan(tmp_path: Path):
+    text = (Path(__file__).parents[2] / "suites" / "maniskill-core.yaml").read_text()
+    suite = load_suite(write_suite(tmp_path, text + "ignore_terminations: true\n"))
+    assert build_plan(suite, "dev").ignore_terminations is True
+    assert build_plan(load_suite("maniskill-core"), "dev").ignore_terminations is False
