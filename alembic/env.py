@@ -5,7 +5,7 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import Connection
 
-from server.db import make_engine
+from server.kit.db import make_engine
 from server.models import Base
 
 config = context.config
@@ -15,7 +15,7 @@ def _url() -> str:
     url = config.get_main_option("sqlalchemy.url")
     if url:
         return url
-    from server.settings import Settings
+    from server.kit.settings import Settings
 
     return Settings().resolved_database_url
 

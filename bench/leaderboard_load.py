@@ -45,9 +45,9 @@ from sqlalchemy import Engine, create_engine, text  # noqa: E402
 from sqlalchemy.orm import Session  # noqa: E402
 
 from server.app import create_app  # noqa: E402
-from server.challenges import ChallengeOptions, load_challenge, suite_of  # noqa: E402
-from server.db import make_engine, upgrade  # noqa: E402
-from server.settings import Settings  # noqa: E402
+from server.challenges.service import ChallengeOptions, load_challenge, suite_of  # noqa: E402
+from server.kit.db import make_engine, upgrade  # noqa: E402
+from server.kit.settings import Settings  # noqa: E402
 
 ADMIN_URL = os.environ.get(
     "MANIEVAL_BENCH_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"

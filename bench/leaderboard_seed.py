@@ -1,6 +1,6 @@
 """Seed data for bench/leaderboard_load.py: users, submissions, per-task results and the
 leaderboard rows they imply, written with COPY; and a check that those rows are what
-``server.leaderboard.refresh`` writes.
+``server.leaderboard.service.refresh`` writes.
 
 Episode rows and result documents are left out: the leaderboard reads neither.
 """
@@ -19,9 +19,9 @@ from sqlalchemy import Engine, select, text
 from sqlalchemy.orm import Session
 
 from evaluator.stats import wilson_interval
-from server.leaderboard import refresh
+from server.kit.security import hash_password
+from server.leaderboard.service import refresh
 from server.models import LeaderboardEntry, State
-from server.security import hash_password
 
 EPISODES = 50
 BASELINES_PER_PHASE = 3
@@ -175,7 +175,7 @@ def task_rows(layout: Layout, subs: Submissions) -> Iterator[tuple[Any, ...]]:
 
 
 def summary(layout: Layout, counts: np.ndarray) -> dict[str, Any]:
-    """The current attempt's summary, computed as server.leaderboard.summary does."""
+    """The current attempt's summary, computed as server.leaderboard.service.summary does."""
     rates = [[k / EPISODES for k in per_task] for per_task in counts[-1].tolist()]
     tasks = {
         env_id: {"success_rate": rate, "ci_low": WILSON[k][0], "ci_high": WILSON[k][1]}
@@ -291,7 +291,7 @@ def verify(engine: Engine, sample: int) -> tuple[dict[str, int], float]:
             for phase_id, user_id in pairs:
                 before = _entries(db, phase_id, user_id)
                 t0 = time.perf_counter()
-                refresh(db, phase_id, user_id)
+                refresh(db, phase_id=phase_id, user_id=user_id)
                 spent, calls = spent + time.perf_counter() - t0, calls + 1
                 after = _entries(db, phase_id, user_id)
                 if before != after:

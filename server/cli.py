@@ -13,8 +13,8 @@ from pydantic import ValidationError
 from rich.console import Console
 
 from evaluator.suite import SuiteError
-from server.errors import AppError
-from server.settings import Settings
+from server.kit.errors import AppError
+from server.kit.settings import Settings
 
 console = Console(stderr=True, soft_wrap=True)
 
@@ -33,7 +33,7 @@ def settings() -> Settings:
 
 
 def _sessions(s: Settings):  # type: ignore[no-untyped-def]
-    from server.db import make_engine, session_factory, upgrade
+    from server.kit.db import make_engine, session_factory, upgrade
 
     upgrade(s.resolved_database_url)
     return session_factory(make_engine(s.resolved_database_url))
@@ -54,14 +54,14 @@ def serve(
     import uvicorn
 
     from server.app import create_app
-    from server.observability import configure_logging
+    from server.kit.observability import configure_logging
 
     s = settings()
     configure_logging(s.log_format, s.log_level)
     if migrate:
         sessions = _sessions(s)
     else:
-        from server.db import make_engine, schema_problem, session_factory
+        from server.kit.db import make_engine, schema_problem, session_factory
 
         problem = schema_problem(s.resolved_database_url)
         if problem is not None:
@@ -84,7 +84,7 @@ def serve(
 @db_app.command("upgrade")
 def db_upgrade(revision: str = "head") -> None:
     """Apply migrations up to REVISION (default: the newest)."""
-    from server.db import upgrade
+    from server.kit.db import upgrade
 
     s = settings()
     upgrade(s.resolved_database_url, revision)
@@ -102,7 +102,7 @@ def admin_create(
     """Create an administrator account (or make an existing user an administrator)."""
     from sqlalchemy import select
 
-    from server import accounts
+    from server.accounts import service as accounts
     from server.models import User
 
     s = settings()
@@ -161,7 +161,7 @@ def challenge_load(
     ] = None,
 ) -> None:
     """Create a challenge from a suite, or update the challenge of that name."""
-    from server.challenges import ChallengeOptions, load_challenge
+    from server.challenges.service import ChallengeOptions, load_challenge
 
     s = settings()
     options = ChallengeOptions(

@@ -19,12 +19,12 @@ from rich.console import Console
 from rich.table import Table
 from sqlalchemy import select
 
-from server import accounts
+from server.accounts import service as accounts
 from server.app import create_app
-from server.challenges import ChallengeOptions, load_challenge
-from server.db import make_engine, session_factory, upgrade
+from server.challenges.service import ChallengeOptions, load_challenge
+from server.kit.db import make_engine, session_factory, upgrade
+from server.kit.settings import Settings
 from server.models import User
-from server.settings import Settings
 
 CHALLENGE = "maniskill-core"
 POLICIES = ("scripted", "random")

@@ -22,8 +22,8 @@ from celery import Celery
 from celery.signals import setup_logging
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.db import make_engine, session_factory
-from server.settings import Settings
+from server.kit.db import make_engine, session_factory
+from server.kit.settings import Settings
 from worker.queue import RUN_NEXT, WATCH, CeleryQueue
 
 log = logging.getLogger(__name__)
@@ -101,7 +101,7 @@ def _watch(submission_id: int, attempt: int) -> Any:
 
 def _logging(**_kwargs: Any) -> None:
     """Celery's records go through ours: text or JSON lines (MANIEVAL_LOG_FORMAT)."""
-    from server.observability import configure_logging
+    from server.kit.observability import configure_logging
 
     configure_logging(_settings().log_format, _settings().log_level)
 

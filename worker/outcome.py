@@ -8,9 +8,9 @@ from sqlalchemy import update
 from sqlalchemy.orm import Session, sessionmaker
 
 from evaluator.results import EvaluationResult
-from server.errors import Conflict
-from server.ingest import report_final, report_state
+from server.kit.errors import Conflict
 from server.models import State, Submission
+from server.submissions.reports import report_final, report_state
 
 
 def start_running(

@@ -6,7 +6,7 @@ import functools
 
 from celery import Celery
 
-from server.settings import Settings
+from server.kit.settings import Settings
 
 RUN_NEXT = "manieval.run_next"
 WATCH = "manieval.watch"

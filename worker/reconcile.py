@@ -20,9 +20,9 @@ from datetime import datetime, timedelta
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.dispatch import Dispatcher, WorkQueue
 from server.models import ACTIVE_STATES, State, Submission, Transition, utcnow
-from server.submissions import new_attempt, transition
+from server.submissions.outbox import Dispatcher, WorkQueue
+from server.submissions.states import new_attempt, transition
 
 log = logging.getLogger(__name__)
 

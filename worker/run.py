@@ -22,11 +22,11 @@ from sqlalchemy.orm import Session, sessionmaker
 from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import EpisodeResult, EvaluationResult
 from evaluator.sources import LocalDirectory, PolicySource
-from server.challenges import suite_of
-from server.ingest import report_progress
+from server.challenges.service import suite_of
+from server.kit.settings import Settings
 from server.models import State, Submission, utcnow
-from server.settings import Settings
-from server.submissions import LOCAL_PREFIX
+from server.submissions.reports import report_progress
+from server.submissions.service import LOCAL_PREFIX
 from worker.outcome import conclude, final_state, finish, start_running
 from worker.reconcile import Cleaner, Resumer
 from worker.scheduling import claim_next

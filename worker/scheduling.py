@@ -14,7 +14,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session as DB
 
 from server.models import State, Submission
-from server.submissions import transition
+from server.submissions.states import transition
 
 CLAIM_ATTEMPTS = 5
 

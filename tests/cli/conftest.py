@@ -24,9 +24,9 @@ import pytest
 from typer.testing import CliRunner, Result
 
 from manieval.cli import app
-from server.challenges import ChallengeOptions, load_challenge
-from server.settings import Settings
-from tests.server.conftest import PASSWORD, SUITE, embedded_database
+from server.challenges.service import ChallengeOptions, load_challenge
+from server.kit.settings import Settings
+from tests.factories import PASSWORD, SUITE, embedded_database
 
 REPO = Path(__file__).resolve().parents[2]
 STARTUP_SECONDS = 90.0
@@ -65,7 +65,7 @@ def load_challenges(settings: Settings) -> None:
     embedded_database(settings, quota_per_day=50, quota_concurrent=3)
     quota_suite = settings.data_dir / "server-quota.yaml"
     quota_suite.write_text(SUITE.read_text().replace("name: server-tiny", "name: server-quota"))
-    from server.db import make_engine, session_factory
+    from server.kit.db import make_engine, session_factory
 
     sessions = session_factory(make_engine(settings.resolved_database_url))
     with sessions.begin() as db:

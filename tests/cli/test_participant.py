@@ -18,7 +18,7 @@ import pytest
 
 from manieval.errors import ExitCode
 from tests.cli.conftest import LiveServer, Participant, participant, running_server
-from tests.server.conftest import PASSWORD
+from tests.factories import PASSWORD
 
 pytestmark = pytest.mark.sim
 ACCEPTED = re.compile(r"submission (\d+) accepted")

@@ -44,7 +44,7 @@ SCRIPT = textwrap.dedent(
 
     import server.cli, manieval.cli, worker.celery_app, worker.run, worker.reconcile
     from server.app import create_app
-    from server.settings import Settings
+    from server.kit.settings import Settings
 
     create_app(Settings(), background=False)
 

@@ -14,7 +14,7 @@ from fastapi.routing import APIRoute
 from evaluator.plan import build_plan
 from evaluator.suite import SUITES_DIR, load_suite
 from server.app import create_app
-from server.settings import Settings
+from server.kit.settings import Settings
 from tests.deploy.manifests import (
     EVALUATIONS,
     OVERLAYS,
@@ -30,8 +30,8 @@ from tests.deploy.manifests import (
     render,
 )
 from tests.worker.test_k8s_manifest import restricted_violations
-from worker.kubernetes.watch import job_spec
 from worker.kubernetes.manifest import active_deadline_for, build_job
+from worker.kubernetes.watch import job_spec
 
 PINNED = re.compile(r"^[a-z0-9][^\s@]*@sha256:[0-9a-f]{64}$")
 SECRET_KEYS = {

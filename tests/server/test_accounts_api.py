@@ -7,10 +7,10 @@ from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.app import create_app
+from server.kit.ratelimit import MemoryRateLimiter
+from server.kit.settings import Settings
 from server.models import ApiToken
-from server.ratelimit import MemoryRateLimiter
-from server.settings import Settings
-from tests.server.conftest import PASSWORD, RecordingQueue, fake_resolve_for, token_for
+from tests.factories import PASSWORD, RecordingQueue, fake_resolve_for, token_for
 
 API = "/api/v1"
 

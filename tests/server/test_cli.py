@@ -9,9 +9,9 @@ from sqlalchemy import select
 from typer.testing import CliRunner
 
 from manieval.cli import app
-from server.db import make_engine, session_factory
+from server.kit.db import make_engine, session_factory
 from server.models import Challenge, User
-from tests.server.conftest import PASSWORD, SUITE
+from tests.factories import PASSWORD, SUITE
 
 runner = CliRunner()
 

@@ -10,8 +10,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app import create_app
-from server.settings import Settings
-from tests.server.conftest import PASSWORD, embedded_database, token_for
+from server.kit.settings import Settings
+from tests.factories import PASSWORD, embedded_database, token_for
 
 API = "/api/v1"
 pytestmark = pytest.mark.sim

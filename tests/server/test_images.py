@@ -1,4 +1,5 @@
-"""The reference grammar (server.image_refs) and resolving against a real registry (images).
+"""The reference grammar (server.submissions.image_refs) and resolving against a real registry
+(server.submissions.images).
 
 The grammar tests compare parse_reference with an independent transcription of
 distribution/reference's regexp.go. The registry tests push images over the distribution HTTP
@@ -20,7 +21,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from server.image_refs import (
+from server.submissions.image_refs import (
     ImageError,
     ImageNotFound,
     ImageReference,
@@ -33,7 +34,7 @@ from server.image_refs import (
     UnsupportedPlatform,
     parse_reference,
 )
-from server.images import (
+from server.submissions.images import (
     DOCKER_MANIFEST,
     DOCKER_MANIFEST_LIST,
     OCI_INDEX,

@@ -11,10 +11,10 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.ingest import report_final, report_state
+from server.kit.observability import JsonFormatter, ServiceCollector, configure_logging, error_kind
 from server.models import State, Submission, utcnow
-from server.observability import JsonFormatter, ServiceCollector, configure_logging, error_kind
-from tests.server.conftest import make_challenge, make_user, queue_submission
+from server.submissions.reports import report_final, report_state
+from tests.factories import make_challenge, make_user, queue_submission
 
 
 def samples(collector: ServiceCollector) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:

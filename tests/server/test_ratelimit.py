@@ -12,7 +12,7 @@ import redis
 from hypothesis import given
 from hypothesis import strategies as st
 
-from server.ratelimit import Decision, MemoryRateLimiter, Rate, RateLimiter, RedisRateLimiter
+from server.kit.ratelimit import Decision, MemoryRateLimiter, Rate, RateLimiter, RedisRateLimiter
 
 REDIS_URL = "redis://127.0.0.1:6379/0"
 

@@ -30,16 +30,16 @@ from evaluator.results import (
     Versions,
     aggregate_task,
 )
-from server import accounts
+from server.accounts import service as accounts
 from server.app import create_app
-from server.challenges import ChallengeOptions, get_challenge, get_phase, load_challenge
-from server.db import make_engine, session_factory, upgrade
-from server.ingest import report_final, report_state
+from server.challenges.service import ChallengeOptions, get_challenge, get_phase, load_challenge
+from server.kit.db import make_engine, session_factory, upgrade
+from server.kit.ratelimit import MemoryRateLimiter
+from server.kit.settings import Settings
 from server.models import State
-from server.ratelimit import MemoryRateLimiter
-from server.settings import Settings
-from server.submissions import submit
-from tests.server.conftest import PASSWORD, SUITE, RecordingQueue, fake_resolve_for
+from server.submissions.reports import report_final, report_state
+from server.submissions.service import submit
+from tests.factories import PASSWORD, SUITE, RecordingQueue, fake_resolve_for
 
 SECRET = "ALICE-PRIVATE-3f9c"  # appears only in Alice's private data
 _DATA = Path(tempfile.mkdtemp(prefix="manieval-schemathesis-"))
@@ -96,14 +96,14 @@ def _build() -> tuple[Any, str]:
             db, username="alice", email="alice@example.org", password=PASSWORD
         )
         bob = accounts.register(db, username="bob", email="bob@example.org", password=PASSWORD)
-        accounts.create_token(db, alice, SECRET)
-        challenge = get_challenge(db, "server-tiny")
+        accounts.create_token(db, user=alice, name=SECRET)
+        challenge = get_challenge(db, slug="server-tiny")
         for public in (False, True):
             sub = submit(
                 db,
-                alice,
-                challenge,
-                get_phase(challenge, "dev"),
+                user=alice,
+                challenge=challenge,
+                phase=get_phase(challenge, "dev"),
                 image=f"127.0.0.1:5000/alice/{'open' if public else 'hidden'}:v1",
                 description=SECRET if not public else "public one",
                 public=public,
@@ -113,7 +113,7 @@ def _build() -> tuple[Any, str]:
             report_state(db, sub.id, 1, State.LAUNCHING, "x")
             report_state(db, sub.id, 1, State.RUNNING, "x")
             report_final(db, sub.id, 1, State.SUCCEEDED, "done", result=_result(), log_tail=SECRET)
-        _, bob_token = accounts.create_token(db, bob, "fuzz")
+        _, bob_token = accounts.create_token(db, user=bob, name="fuzz")
     app = create_app(
         s,
         sessions=sessions,

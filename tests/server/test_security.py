@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from server import security
+from server.kit import security
 
 # --- Passwords -----------------------------------------------------------------------------------
 

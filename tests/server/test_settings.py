@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from server.settings import Settings
+from server.kit.settings import Settings
 
 STRONG = "x" * 32
 

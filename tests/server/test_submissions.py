@@ -11,16 +11,10 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.ingest import report_final, report_state
 from server.models import Outbox, State, Submission, Transition
-from server.submissions import transition
-from tests.server.conftest import (
-    RecordingQueue,
-    make_challenge,
-    make_user,
-    result_doc,
-    token_for,
-)
+from server.submissions.reports import report_final, report_state
+from server.submissions.states import transition
+from tests.factories import RecordingQueue, make_challenge, make_user, result_doc, token_for
 
 API = "/api/v1"
 IMAGE = "127.0.0.1:5000/team/policy:v1"
@@ -263,7 +257,7 @@ def test_ingestion_is_idempotent_and_refuses_stale_attempts(
     assert r.status_code == 200
     assert r.json()["attempt"] == 2
     assert r.json()["state"] == "queued"
-    from server.errors import Conflict
+    from server.kit.errors import Conflict
 
     with pytest.raises(Conflict):
         report_state(db, sid, 1, State.RUNNING, "a late worker of attempt 1")
@@ -296,16 +290,16 @@ def test_two_workers_racing_one_submission_exactly_one_wins(
     with committed_sessions() as db:
         make_challenge(db)
         user = make_user(db, "racer")
-        from server.challenges import get_challenge, get_phase
-        from server.submissions import Resolved
-        from server.submissions import submit as do_submit
+        from server.challenges.service import get_challenge, get_phase
+        from server.submissions.service import Resolved
+        from server.submissions.service import submit as do_submit
 
-        challenge = get_challenge(db, "server-tiny")
+        challenge = get_challenge(db, slug="server-tiny")
         s = do_submit(
             db,
-            user,
-            challenge,
-            get_phase(challenge, "dev"),
+            user=user,
+            challenge=challenge,
+            phase=get_phase(challenge, "dev"),
             image=IMAGE,
             description="",
             public=True,
@@ -337,7 +331,7 @@ def test_two_workers_racing_one_submission_exactly_one_wins(
 
 def test_leaderboard_pages_rank_around_baselines(db: Session) -> None:
     """Every page, read alone by the index, numbers its rows as the whole board would."""
-    from server.leaderboard import LeaderboardCache
+    from server.leaderboard.service import LeaderboardCache
     from server.models import LeaderboardEntry
 
     challenge = make_challenge(db)
@@ -386,7 +380,7 @@ def test_leaderboard_pages_rank_around_baselines(db: Session) -> None:
     for per_page in (1, 2, 3, 7, 10):
         seen = []
         for page in range(1, 8):
-            board = cache.page(db, phase.id, page, per_page)
+            board = cache.page(db, phase_id=phase.id, page=page, per_page=per_page)
             assert board.total == 7
             seen += [(r.username, r.rank) for r in board.rows]
         assert seen == expected, per_page

@@ -10,10 +10,11 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.app import create_app, image_resolver
-from server.ratelimit import MemoryRateLimiter
-from server.settings import Settings
-from tests.server.conftest import RecordingQueue, make_challenge, make_user, token_for
+from server.app import create_app
+from server.kit.ratelimit import MemoryRateLimiter
+from server.kit.settings import Settings
+from server.submissions.images import image_resolver
+from tests.factories import RecordingQueue, make_challenge, make_user, token_for
 from tests.server.registry_fixture import (  # noqa: F401 - pytest fixtures
     LocalRegistry,
     PushedImage,

@@ -11,9 +11,9 @@ from sqlalchemy.orm import Session
 from evaluator.results import (
     Video,
 )
-from server.ingest import report_final, report_state
 from server.models import Challenge, State, Submission, User
-from tests.server.conftest import PASSWORD, queue_submission, result_doc
+from server.submissions.reports import report_final, report_state
+from tests.factories import PASSWORD, queue_submission, result_doc
 
 WEB_CONDITIONS = ("nominal", "obs_noise")  # the server-tiny suite's conditions
 

@@ -8,10 +8,10 @@ from pydantic import SecretStr
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.app import create_app
+from server.kit.ratelimit import MemoryRateLimiter
+from server.kit.settings import Settings
 from server.models import Challenge
-from server.ratelimit import MemoryRateLimiter
-from server.settings import Settings
-from tests.server.conftest import RecordingQueue, fake_resolve_for
+from tests.factories import RecordingQueue, fake_resolve_for
 
 
 def app_client(

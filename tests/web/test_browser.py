@@ -20,9 +20,9 @@ import pytest
 import uvicorn
 
 from server.app import create_app, inline_queue
-from server.dispatch import InlineQueue
-from server.settings import Settings
-from tests.server.conftest import embedded_database
+from server.kit.settings import Settings
+from tests.factories import embedded_database
+from worker.embedded import InlineQueue
 
 pytestmark = pytest.mark.sim
 

@@ -8,7 +8,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
-from tests.server.conftest import PASSWORD, make_user
+from tests.factories import PASSWORD, make_user
 from tests.web.helpers import browser, csrf_of
 
 TOKEN = re.compile(r"mev_[a-z2-7]{8}_[A-Za-z0-9_-]{43}")

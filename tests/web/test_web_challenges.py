@@ -8,10 +8,10 @@ from datetime import UTC, datetime, timedelta
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
-from server.leaderboard import refresh
+from server.challenges.pages import ScoreHistory
+from server.leaderboard.service import record_points, refresh
 from server.models import Challenge, Phase
-from server.web_challenges import ScoreHistory, record_points
-from tests.server.conftest import make_challenge, make_user
+from tests.factories import make_challenge, make_user
 from tests.web.helpers import browser, finished
 
 
@@ -66,7 +66,7 @@ def test_leaderboard_has_intervals_stress_columns_baselines_and_downloads(
     assert "Flag as baseline" not in html  # not an admin
     base.baseline = True
     db.flush()
-    refresh(db, base.phase_id, base.user_id)
+    refresh(db, phase_id=base.phase_id, user_id=base.user_id)
     db.commit()
     page = client.get("/challenges/server-tiny/leaderboard?phase=dev")
     assert page.status_code == 200
@@ -110,7 +110,7 @@ def test_score_history_keeps_only_records_and_follows_the_board_version(
     best = finished(db, make_user(db, "carol"), tiny, [True, True])
     finished(db, make_user(db, "dave"), tiny, [True, True])  # a tie is not a record
     db.refresh(dev)
-    points = record_points(db, dev.id)
+    points = record_points(db, phase_id=dev.id)
     assert [p.submission_id for p in points] == [first.id, best.id]
     chart = history.chart(db, dev)
     assert chart is not None

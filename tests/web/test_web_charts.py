@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 
-from server.web_charts import (
+from server.challenges.charts import (
     BAR_LABEL_WIDTH,
     ScorePoint,
     TaskSuccess,

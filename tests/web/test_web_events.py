@@ -13,11 +13,11 @@ from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.app import create_app
-from server.ingest import report_final, report_progress, report_state
+from server.kit.settings import Settings
 from server.models import State, Transition
-from server.settings import Settings
-from server.web_events import StreamTiming
-from tests.server.conftest import (
+from server.submissions.events import StreamTiming
+from server.submissions.reports import report_final, report_progress, report_state
+from tests.factories import (
     RecordingQueue,
     fake_resolve_for,
     make_challenge,
@@ -178,7 +178,7 @@ def test_private_streams_are_404_to_others_and_open_to_the_owner(
 def test_open_streams_are_bounded_per_client(
     live: TestClient, committed_sessions: sessionmaker[Session]
 ) -> None:
-    from server.web_events import StreamSlots
+    from server.submissions.events import StreamSlots
 
     sid = queued(committed_sessions)
     slots = StreamSlots(total=10, per_client=1)

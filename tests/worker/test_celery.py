@@ -17,9 +17,9 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server.app import create_app
+from server.kit.settings import Settings
 from server.models import State, Submission, Transition, utcnow
-from server.settings import Settings
-from tests.server.conftest import PASSWORD, embedded_database, token_for
+from tests.factories import PASSWORD, embedded_database, token_for
 from tests.worker.redis_server import Redis
 from worker.queue import CeleryQueue
 from worker.reconcile import reconcile

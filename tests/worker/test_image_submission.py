@@ -10,11 +10,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app import create_app
-from server.challenges import ChallengeOptions, load_challenge
-from server.db import make_engine, session_factory, upgrade
-from server.settings import Settings
+from server.challenges.service import ChallengeOptions, load_challenge
+from server.kit.db import make_engine, session_factory, upgrade
+from server.kit.settings import Settings
 from tests.evaluator.conftest import SCRIPTED
-from tests.server.conftest import PASSWORD, SUITE, token_for
+from tests.factories import PASSWORD, SUITE, token_for
 from tests.server.registry_fixture import LocalRegistry, fixture_registry  # noqa: F401
 from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
     ContainerEngine,

@@ -27,13 +27,13 @@ from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import Abort, EvaluationResult
 from evaluator.runner import ShardOutcome
 from evaluator.sources import LocalDirectory
-from server.challenges import ChallengeOptions, load_challenge, suite_of
-from server.ingest import report_state
+from server.challenges.service import ChallengeOptions, load_challenge, suite_of
+from server.kit.settings import Settings
 from server.models import State, Submission, utcnow
-from server.settings import Settings
-from server.submissions import cancel
+from server.submissions.reports import report_state
+from server.submissions.service import cancel
 from tests.evaluator.conftest import REPO, SCRIPTED, episode_records
-from tests.server.conftest import SUITE, RecordingQueue, make_challenge, make_user, queue_submission
+from tests.factories import SUITE, RecordingQueue, make_challenge, make_user, queue_submission
 from tests.worker.k8s_double import (
     EVALUATOR_IMAGE,
     NAMESPACE,
@@ -42,8 +42,8 @@ from tests.worker.k8s_double import (
     running_apiserver,
 )
 from worker.kubernetes.client import KubernetesExecutor
-from worker.kubernetes.watch import resume_watch, run_as_job
 from worker.kubernetes.manifest import build_job, job_name
+from worker.kubernetes.watch import resume_watch, run_as_job
 from worker.reconcile import reconcile
 from worker.run import job_resumer, run_next, runtime_cleaners
 from worker.scheduling import claim_next

@@ -8,9 +8,9 @@ from datetime import timedelta
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.ingest import report_state
 from server.models import State, Submission, Transition, utcnow
-from tests.server.conftest import RecordingQueue, make_challenge, make_user, queue_submission
+from server.submissions.reports import report_state
+from tests.factories import RecordingQueue, make_challenge, make_user, queue_submission
 from worker.reconcile import reconcile
 
 

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.models import State, Submission
-from tests.server.conftest import make_challenge, make_user, queue_submission
+from tests.factories import make_challenge, make_user, queue_submission
 from worker.scheduling import claim_next, fair_order
 
 

@@ -26,9 +26,9 @@ from evaluator.job import JobOutputError, evaluation_job, result_from_logs
 from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.sources import LOG_TAIL_BYTES
 from evaluator.suite import Suite
-from server.ingest import report_progress
+from server.kit.settings import Settings
 from server.models import State, Submission, utcnow
-from server.settings import Settings
+from server.submissions.reports import report_progress
 from worker.kubernetes.client import JobConflict, JobStatus, KubernetesError, KubernetesExecutor
 from worker.kubernetes.manifest import (
     EVALUATOR,
@@ -135,7 +135,7 @@ def resume_watch(
 ) -> State | None:
     """Watch the Job of a `running` attempt whose watcher was lost (a worker killed): the
     reconciler asks for this when the Job still exists, so the evaluation is not thrown away."""
-    from server.challenges import suite_of
+    from server.challenges.service import suite_of
 
     with sessions() as db:
         submission = db.get(Submission, submission_id)

@@ -1,0 +1,1 @@
+"""Accounts: registration, password login, browser sessions and API tokens."""

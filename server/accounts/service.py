@@ -1,0 +1,179 @@
+"""Accounts: registration, password login, browser sessions and API tokens."""
+
+from __future__ import annotations
+
+from datetime import datetime, timedelta
+
+from sqlalchemy import func, select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session as DB
+
+from server.kit import security
+from server.kit.errors import Conflict, Invalid
+from server.models import ApiToken, Session, User, utcnow
+
+MAX_TOKENS_PER_USER = 50
+
+
+def normalise_email(email: str) -> str:
+    """The stored form of an email address: trimmed and lower-case."""
+    return email.strip().lower()
+
+
+def register(db: DB, *, username: str, email: str, password: str, admin: bool = False) -> User:
+    """Create an account, or raise Invalid (field problems) / Conflict (name or email taken)."""
+    problems: dict[str, str] = {}
+    if (problem := security.validate_username(username)) is not None:
+        problems["username"] = problem
+    email = normalise_email(email)
+    if (problem := validate_email(email)) is not None:
+        problems["email"] = problem
+    if found := security.password_problems(password, username=username, email=email):
+        problems["password"] = " ".join(found)
+    if problems:
+        raise Invalid("the account cannot be created", fields=problems)
+    taken = db.scalar(select(User).where((User.username == username) | (User.email == email)))
+    if taken is not None:
+        field = "username" if taken.username == username else "email"
+        raise Conflict(f"this {field} is already registered", fields={field: "already taken"})
+    user = User(
+        username=username,
+        email=email,
+        password_hash=security.hash_password(password),
+        is_admin=admin,
+    )
+    db.add(user)
+    try:
+        db.flush()
+    except IntegrityError:  # a concurrent registration won the race
+        db.rollback()
+        raise Conflict("this username or email is already registered") from None
+    return user
+
+
+def validate_email(email: str) -> str | None:
+    """What is wrong with an email address, for its form field; None when nothing is."""
+    if len(email) > 254 or email.count("@") != 1:
+        return "enter an email address like name@example.org"
+    local, _, domain = email.partition("@")
+    if not local or "." not in domain or domain.startswith(".") or domain.endswith("."):
+        return "enter an email address like name@example.org"
+    if not email.isascii() or any(c.isspace() or ord(c) < 33 for c in email):
+        return "the email address may only contain printable ASCII characters"
+    return None
+
+
+def authenticate(db: DB, *, login: str, password: str) -> User | None:
+    """The user whose username or email and password match; same cost whether or not it exists."""
+    login = login.strip()
+    user = db.scalar(
+        select(User).where((User.username == login) | (User.email == normalise_email(login)))
+    )
+    if user is None:
+        security.dummy_verify(password)
+        return None
+    if not security.verify_password(user.password_hash, password):
+        return None
+    if security.password_needs_rehash(user.password_hash):
+        user.password_hash = security.hash_password(password)
+    return user
+
+
+def set_password(db: DB, user: User, password: str) -> None:
+    """Change a password and end every browser session of the account."""
+    if found := security.password_problems(password, username=user.username, email=user.email):
+        raise Invalid("the password is too weak", fields={"password": " ".join(found)})
+    user.password_hash = security.hash_password(password)
+    db.execute(update(Session).where(Session.user_id == user.id).values(expires_at=utcnow()))
+
+
+# Sessions -----------------------------------------------------------------------------------
+
+
+def open_session(db: DB, *, user: User, days: int) -> str:
+    """A new browser session for `user`; returns the cookie value (stored only hashed)."""
+    issued = security.new_secret("session")
+    db.add(
+        Session(
+            user_id=user.id,
+            prefix=issued.prefix,
+            digest=issued.digest,
+            expires_at=utcnow() + timedelta(days=days),
+        )
+    )
+    db.flush()
+    return issued.plaintext
+
+
+def session_for(db: DB, *, cookie: str | None) -> Session | None:
+    """The live session a cookie names, or None (unknown, forged or expired)."""
+    if not cookie or (parsed := security.parse_secret(cookie, "session")) is None:
+        return None
+    prefix, digest = parsed
+    found = db.scalar(select(Session).where(Session.prefix == prefix))
+    if found is None or not security.secrets_equal(found.digest, digest):
+        return None
+    if found.expires_at <= utcnow():
+        return None
+    return found
+
+
+def close_session(db: DB, *, session: Session) -> None:
+    """Log out: the session is deleted (`session` may come from another database session)."""
+    db.delete(db.merge(session))
+
+
+# API tokens ---------------------------------------------------------------------------------
+
+
+def create_token(db: DB, *, user: User, name: str) -> tuple[ApiToken, str]:
+    """A new named token; the plaintext is returned once and never stored."""
+    name = name.strip()
+    if not 1 <= len(name) <= 64 or not name.isprintable():
+        raise Invalid("bad token name", fields={"name": "1 to 64 printable characters"})
+    live = db.scalar(
+        select(func.count())
+        .select_from(ApiToken)
+        .where(ApiToken.user_id == user.id, ApiToken.revoked_at.is_(None))
+    )
+    if (live or 0) >= MAX_TOKENS_PER_USER:
+        raise Conflict(f"at most {MAX_TOKENS_PER_USER} live tokens; revoke one first")
+    issued = security.new_secret("token")
+    token = ApiToken(user_id=user.id, name=name, prefix=issued.prefix, digest=issued.digest)
+    db.add(token)
+    db.flush()
+    return token, issued.plaintext
+
+
+def user_for_token(db: DB, *, plaintext: str, now: datetime | None = None) -> User | None:
+    """The owner of a live API token, or None; records when the token was last used."""
+    if (parsed := security.parse_secret(plaintext, "token")) is None:
+        return None
+    prefix, digest = parsed
+    token = db.scalar(select(ApiToken).where(ApiToken.prefix == prefix))
+    if token is None or token.revoked_at is not None:
+        return None
+    if not security.secrets_equal(token.digest, digest):
+        return None
+    now = now or utcnow()
+    # Record use at most once a minute: a CLI polling status must not write on every call.
+    if token.last_used_at is None or now - token.last_used_at > timedelta(minutes=1):
+        token.last_used_at = now
+    return token.user
+
+
+def list_tokens(db: DB, *, user: User) -> list[ApiToken]:
+    """The user's API tokens, newest first, revoked ones included."""
+    return list(
+        db.scalars(select(ApiToken).where(ApiToken.user_id == user.id).order_by(ApiToken.id.desc()))
+    )
+
+
+def revoke_token(db: DB, *, user: User, token_id: int) -> ApiToken | None:
+    """Revoke one of the user's tokens (again is a no-op); None when the user has no such token."""
+    token = db.get(ApiToken, token_id)
+    if token is None or token.user_id != user.id:
+        return None
+    if token.revoked_at is None:
+        token.revoked_at = utcnow()
+    return token

@@ -1,0 +1,1 @@
+"""Challenges: loaded from suite files, with their phases, seed commitments and pages."""

@@ -1,0 +1,81 @@
+"""The challenges API, ``/api/v1/challenges``: the list, and one challenge with its rules."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from server.challenges import service
+from server.challenges.schemas import (
+    ChallengeOut,
+    ChallengeSummary,
+    ConditionOut,
+    PhaseOut,
+    QuotaOut,
+    TaskOut,
+)
+from server.challenges.service import get_challenge, suite_of
+from server.kit.deps import CallerDep, DBDep, PageNo, PerPage
+from server.kit.errors import ERROR_RESPONSES
+from server.kit.schemas import Page
+from server.models import Challenge, utcnow
+from server.submissions.service import quota_use
+
+router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES, tags=["challenges"])
+
+
+def _phases(challenge: Challenge) -> list[PhaseOut]:
+    suite = suite_of(challenge)
+    now = utcnow()
+    return [
+        PhaseOut(
+            name=p.name,
+            description=suite.phases[p.name].description if p.name in suite.phases else "",
+            public_seeds=p.public_seeds,
+            seed_commitment=p.seed_commitment,
+            opens_at=p.opens_at,
+            closes_at=p.closes_at,
+            open=p.is_open(now),
+        )
+        for p in challenge.phases
+    ]
+
+
+@router.get("/challenges")
+def list_challenges(db: DBDep, page: PageNo = 1, per_page: PerPage = 50) -> Page[ChallengeSummary]:
+    rows, total = service.list_challenges(db, page=page, per_page=per_page)
+    items = [
+        ChallengeSummary(slug=c.slug, title=c.title, description=c.description, phases=_phases(c))
+        for c in rows
+    ]
+    return Page(items=items, page=page, per_page=per_page, total=total)
+
+
+@router.get("/challenges/{slug}")
+def challenge_detail(slug: str, who: CallerDep, db: DBDep) -> ChallengeOut:
+    challenge = get_challenge(db, slug=slug)
+    suite = suite_of(challenge)
+    quota = None
+    if who.user is not None:
+        use = quota_use(db, user=who.user, challenge=challenge, now=utcnow())
+        quota = QuotaOut(**use.__dict__)
+    return ChallengeOut(
+        slug=challenge.slug,
+        title=challenge.title,
+        description=challenge.description,
+        phases=_phases(challenge),
+        suite_hash=challenge.suite_hash,
+        tasks=[
+            TaskOut(
+                env_id=t.env_id,
+                episodes=t.episodes,
+                max_episode_steps=t.max_episode_steps,
+                obs_mode=t.obs_mode,
+                control_mode=t.control_mode,
+            )
+            for t in suite.tasks
+        ],
+        conditions=[ConditionOut(name=c.name, kind=c.params.kind) for c in suite.conditions],
+        quota_per_day=challenge.quota_per_day,
+        quota_concurrent=challenge.quota_concurrent,
+        my_quota=quota,
+    )

@@ -1,0 +1,94 @@
+"""The home page (the challenges) and a challenge's page: rules, phases, quota, seed
+commitments, the top of the leaderboard and the best score over time."""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import RedirectResponse, Response
+from sqlalchemy.orm import Session as DB
+
+from server.challenges.charts import StepChart, best_over_time, step_chart
+from server.challenges.service import all_challenges, get_challenge, shown_phase, suite_of
+from server.kit.deps import DBDep, services
+from server.kit.pages import ViewerDep, render
+from server.leaderboard.service import baseline_points, record_points
+from server.models import Phase, utcnow
+from server.submissions.service import quota_use
+
+router = APIRouter(include_in_schema=False)
+
+TOP_ROWS = 10  # rows of the board shown on the challenge page
+PhaseName = Annotated[str | None, Query(max_length=32)]
+
+
+@router.get("/")
+def home(request: Request, who: ViewerDep, db: DBDep) -> Response:
+    """The challenges: those open for submissions first."""
+    now = utcnow()
+    challenges = all_challenges(db)
+    open_now = [c for c in challenges if any(p.is_open(now) for p in c.phases)]
+    others = [c for c in challenges if c not in open_now]
+    return render(request, who, "home.html", open_now=open_now, others=others, now=now)
+
+
+@router.get("/favicon.ico")
+def favicon() -> Response:
+    return RedirectResponse("/static/favicon.svg", status_code=301)
+
+
+@router.get("/challenges/{slug}")
+def challenge_page(
+    slug: str, request: Request, who: ViewerDep, db: DBDep, phase: PhaseName = None
+) -> Response:
+    """Description, tasks, rules, phases, quota, seed commitments, leaderboard and history."""
+    challenge = get_challenge(db, slug=slug)
+    shown = shown_phase(challenge, name=phase)
+    now = utcnow()
+    quota = (
+        quota_use(db, user=who.user, challenge=challenge, now=now) if who.user is not None else None
+    )
+    board = services(request).leaderboards.page(db, phase_id=shown.id, page=1, per_page=TOP_ROWS)
+    return render(
+        request,
+        who,
+        "challenge.html",
+        challenge=challenge,
+        suite=suite_of(challenge),
+        phase=shown,
+        now=now,
+        quota=quota,
+        board=board,
+        chart=request.app.state.score_history.chart(db, shown),
+    )
+
+
+class ScoreHistory:
+    """Best-score-over-time charts per (phase, board version): the version changes whenever
+    something that decides the board does, so a cached chart is never stale."""
+
+    def __init__(self, size: int = 64) -> None:
+        self._charts: OrderedDict[tuple[int, int], StepChart | None] = OrderedDict()
+        self._size = size
+        self._lock = threading.Lock()
+
+    def chart(self, db: DB, phase: Phase, *, now: Callable[[], Any] = utcnow) -> StepChart | None:
+        key = (phase.id, phase.leaderboard_version)
+        with self._lock:
+            if key in self._charts:
+                self._charts.move_to_end(key)
+                return self._charts[key]
+        drawn = step_chart(
+            best_over_time(record_points(db, phase_id=phase.id)),
+            now=now(),
+            baselines=baseline_points(db, phase_id=phase.id),
+        )
+        with self._lock:
+            self._charts[key] = drawn
+            while len(self._charts) > self._size:
+                self._charts.popitem(last=False)
+        return drawn

@@ -1,0 +1,54 @@
+"""Response bodies of the challenges API: a challenge, its phases, tasks, conditions, quota."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from pydantic import BaseModel
+
+
+class PhaseOut(BaseModel):
+    name: str
+    description: str
+    public_seeds: bool
+    seed_commitment: str
+    opens_at: datetime | None
+    closes_at: datetime | None
+    open: bool
+
+
+class TaskOut(BaseModel):
+    env_id: str
+    episodes: int
+    max_episode_steps: int
+    obs_mode: str
+    control_mode: str
+
+
+class ConditionOut(BaseModel):
+    name: str
+    kind: str
+
+
+class QuotaOut(BaseModel):
+    per_day_used: int
+    per_day_limit: int
+    concurrent_used: int
+    concurrent_limit: int
+    resets_at: datetime | None
+
+
+class ChallengeSummary(BaseModel):
+    slug: str
+    title: str
+    description: str
+    phases: list[PhaseOut]
+
+
+class ChallengeOut(ChallengeSummary):
+    suite_hash: str
+    tasks: list[TaskOut]
+    conditions: list[ConditionOut]
+    quota_per_day: int
+    quota_concurrent: int
+    my_quota: QuotaOut | None

@@ -1,0 +1,158 @@
+"""Challenges: created or updated from a suite file; the test phase's seeds stay on the server."""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import yaml
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session as DB
+from sqlalchemy.orm import selectinload
+
+from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
+from server.kit.errors import Invalid, NotFound
+from server.models import Challenge, Phase, utcnow
+
+
+@dataclass(frozen=True)
+class ChallengeOptions:
+    title: str | None = None
+    description: str | None = None
+    quota_per_day: int = 5
+    quota_concurrent: int = 1
+    opens: dict[str, datetime] = field(default_factory=dict)
+    closes: dict[str, datetime] = field(default_factory=dict)
+    episodes: int | None = None
+    """Override every task's episode count (a quick try-out; the stored suite says so)."""
+
+
+def load_challenge(
+    db: DB, suite_ref: str | Path, options: ChallengeOptions, *, seed_secret: str
+) -> Challenge:
+    """Create the challenge named after the suite, or update it in place (same slug)."""
+    suite = load_suite(suite_ref)
+    for name in [*options.opens, *options.closes]:
+        suite.phase(name)  # SuiteError names the phases that exist
+    if options.quota_per_day < 1 or options.quota_concurrent < 1:
+        raise Invalid("quotas must be at least 1")
+    text = Path(suite_ref).read_text() if Path(suite_ref).exists() else None
+    suite_yaml = text if text is not None else _bundled_text(suite_ref)
+    if options.episodes is not None:
+        if options.episodes < 1:
+            raise Invalid("episodes must be at least 1")
+        tasks = tuple(t.model_copy(update={"episodes": options.episodes}) for t in suite.tasks)
+        suite = suite.model_copy(update={"tasks": tasks})
+        header = f"# {suite.name} with {options.episodes} episodes per task (a try-out)\n"
+        suite_yaml = header + yaml.safe_dump(suite.model_dump(mode="json"), sort_keys=False)
+
+    challenge = db.scalar(select(Challenge).where(Challenge.slug == suite.name))
+    if challenge is None:
+        challenge = Challenge(slug=suite.name)
+        db.add(challenge)
+    challenge.title = options.title or _title(suite)
+    challenge.description = options.description or suite.description
+    challenge.suite_yaml = suite_yaml
+    challenge.suite_hash = suite.sha256()
+    challenge.quota_per_day = options.quota_per_day
+    challenge.quota_concurrent = options.quota_concurrent
+
+    existing = {phase.name: phase for phase in challenge.phases}
+    for name, spec in suite.phases.items():
+        phase = existing.pop(name, None)
+        if phase is None:
+            phase = Phase(name=name)
+            challenge.phases.append(phase)
+        phase.public_seeds = isinstance(spec.seeds, PublicSeeds)
+        phase.seed_commitment = commitment(suite, name, seed_secret)
+        phase.opens_at = options.opens.get(name, phase.opens_at)
+        phase.closes_at = options.closes.get(name, phase.closes_at)
+        if phase.opens_at and phase.closes_at and phase.closes_at <= phase.opens_at:
+            raise Invalid(f"phase {name!r} closes before it opens")
+    for gone in existing.values():  # phases dropped from the suite
+        challenge.phases.remove(gone)
+    db.flush()
+    return challenge
+
+
+def _bundled_text(ref: str | Path) -> str:
+    from evaluator.suite import SUITES_DIR
+
+    return (SUITES_DIR / f"{ref}.yaml").read_text()
+
+
+def _title(suite: Suite) -> str:
+    return suite.name.replace("-", " ").replace("_", " ").title()
+
+
+def suite_of(challenge: Challenge) -> Suite:
+    """The suite the challenge was loaded from, as stored with it."""
+    return Suite.model_validate(yaml.safe_load(challenge.suite_yaml))
+
+
+def phase_seed_map(suite: Suite, phase: str, seed_secret: str) -> dict[str, list[int]]:
+    """Each task's seeds in a phase (secret ones derived from `seed_secret`)."""
+    secret = seed_secret.encode()  # the HMAC mixes in the suite's name: no shared seeds
+    return {
+        task.env_id: phase_seeds(suite, phase, task.env_id, task.episodes, secret=secret)
+        for task in suite.tasks
+    }
+
+
+def commitment(suite: Suite, phase: str, seed_secret: str) -> str:
+    """SHA-256 over the phase's seeds and a secret salt, published before seeds are revealed."""
+    salt = hmac.new(
+        seed_secret.encode(), f"salt/{suite.name}/{phase}".encode(), hashlib.sha256
+    ).hexdigest()
+    return seed_commitment(phase_seed_map(suite, phase, seed_secret), salt=salt)
+
+
+def get_challenge(db: DB, *, slug: str) -> Challenge:
+    """The challenge with this slug, or NotFound."""
+    challenge = db.scalar(select(Challenge).where(Challenge.slug == slug))
+    if challenge is None:
+        raise NotFound(f"no challenge {slug!r}")
+    return challenge
+
+
+def get_phase(challenge: Challenge, name: str) -> Phase:
+    """The challenge's phase of this name, or Invalid naming the phases it has."""
+    for phase in challenge.phases:
+        if phase.name == name:
+            return phase
+    names = ", ".join(p.name for p in challenge.phases)
+    raise Invalid(
+        f"challenge {challenge.slug!r} has no phase {name!r} (it has: {names})",
+        fields={"phase": f"one of: {names}"},
+    )
+
+
+def shown_phase(challenge: Challenge, *, name: str | None) -> Phase:
+    """The phase a page shows: the one named (NotFound if none is), else the first phase open
+    now, else the first one."""
+    if name is None:
+        now = utcnow()
+        return next((p for p in challenge.phases if p.is_open(now)), challenge.phases[0])
+    try:
+        return get_phase(challenge, name)
+    except Invalid:
+        raise NotFound(f"challenge {challenge.slug!r} has no phase {name!r}") from None
+
+
+def list_challenges(db: DB, *, page: int, per_page: int) -> tuple[list[Challenge], int]:
+    """One page of the challenges, oldest first, and how many there are."""
+    total = db.scalar(select(func.count()).select_from(Challenge)) or 0
+    rows = db.scalars(
+        select(Challenge).order_by(Challenge.id).offset((page - 1) * per_page).limit(per_page)
+    )
+    return list(rows), total
+
+
+def all_challenges(db: DB) -> list[Challenge]:
+    """Every challenge with its phases, oldest first (the home page lists them all)."""
+    return list(
+        db.scalars(select(Challenge).options(selectinload(Challenge.phases)).order_by(Challenge.id))
+    )

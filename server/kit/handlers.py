@@ -1,0 +1,67 @@
+"""One error body for the API (JSON), and its HTML twin for the web pages."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from server.kit import pages
+from server.kit.errors import AppError, ErrorBody, ErrorDetail
+
+log = logging.getLogger(__name__)
+
+TITLES = {
+    401: "Please log in",
+    403: "Not allowed",
+    404: "Not found",
+    405: "Not allowed",
+    409: "Not possible now",
+    422: "Something is not right",
+    429: "Too many requests",
+    500: "Something went wrong on our side",
+    503: "Unavailable; try again soon",
+}
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Render every error, ours, FastAPI's and Starlette's, as the one error body."""
+
+    def respond(
+        request: Request, status: int, detail: ErrorDetail, headers: dict[str, str] | None = None
+    ) -> Response:
+        if pages.wants_html(request):
+            page = pages.error_page(request, status, TITLES.get(status, "Error"), detail)
+            page.headers.update(headers or {})
+            return page
+        body = ErrorBody(error=detail).model_dump(mode="json", exclude_none=True)
+        return JSONResponse(body, status_code=status, headers=headers)
+
+    @app.exception_handler(AppError)
+    async def app_error(request: Request, exc: AppError) -> Response:
+        detail = ErrorDetail.model_validate(exc.body()["error"])
+        return respond(request, exc.status, detail, exc.headers())
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, exc: RequestValidationError) -> Response:
+        fields: dict[str, str] = {}
+        for error in exc.errors():
+            loc = [str(part) for part in error.get("loc", ()) if part not in ("body", "query")]
+            fields[".".join(loc) or "request"] = str(error.get("msg", "invalid"))
+        detail = ErrorDetail(code="invalid", message="the request is not valid", fields=fields)
+        return respond(request, 422, detail)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
+        detail = ErrorDetail(code=code, message=str(exc.detail))
+        return respond(request, exc.status_code, detail, getattr(exc, "headers", None))
+
+    @app.exception_handler(Exception)
+    async def crash(request: Request, exc: Exception) -> Response:
+        log.exception("unhandled error", exc_info=exc)
+        detail = ErrorDetail(code="internal", message="internal error; it has been logged")
+        return respond(request, 500, detail)

@@ -1,0 +1,245 @@
+"""What every web page shares: templates, who is looking, form tokens, security headers, and
+`install(app, routers)`, which serves the pages of every domain and their static files.
+
+The pages are server-rendered Jinja2 templates (`web/templates`) on the domain code: they call
+the same services as the API (no HTTP round trip) and are left out of the OpenAPI document,
+which describes the API only.
+
+Pages log in with the same session cookie as the API. Every form POST carries a CSRF token:
+the session's (as the API's `X-CSRF-Token`) once logged in; before that (login, register) a
+token bound to a random `manieval_form` cookie, so that another site cannot log a visitor in
+to an account of its choosing either.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import secrets
+from collections.abc import Iterable
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Annotated, Any
+from urllib.parse import quote, urlencode, urlsplit
+
+import jinja2
+from fastapi import APIRouter, Depends, FastAPI, Form, Request
+from fastapi.responses import HTMLResponse, Response
+from fastapi.staticfiles import StaticFiles
+
+from server.accounts import service as accounts
+from server.kit import security
+from server.kit.db import ROOT
+from server.kit.deps import SESSION_COOKIE, DBDep, services
+from server.kit.errors import ErrorDetail, Forbidden
+from server.models import Session, User
+
+WEB_DIR = ROOT / "web"
+TEMPLATES_DIR = WEB_DIR / "templates"
+STATIC_DIR = WEB_DIR / "static"
+FORM_COOKIE = "manieval_form"
+ANONYMOUS_FORMS = frozenset({"/login", "/register"})
+"""The only forms a token bound to the form cookie (not to a session) may post."""
+# Paths for programs, whose errors stay the API's JSON body.
+MACHINE_PATHS = (
+    "/api/",
+    "/internal/",
+    "/healthz",
+    "/readyz",
+    "/metrics",
+    "/docs",
+    "/redoc",
+    "/openapi.json",
+)
+
+# Scripts only from our own /static files: no inline script or event handler can run, so
+# markup that slipped through escaping could still not execute anything.
+CONTENT_SECURITY_POLICY = "; ".join(
+    [
+        "default-src 'self'",
+        "script-src 'self'",
+        "style-src 'self'",
+        "img-src 'self'",
+        "media-src 'self'",
+        "connect-src 'self'",
+        "object-src 'none'",
+        "base-uri 'none'",
+        "form-action 'self'",
+        "frame-ancestors 'none'",
+    ]
+)
+SECURITY_HEADERS = {
+    "Content-Security-Policy": CONTENT_SECURITY_POLICY,
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "same-origin",
+    "X-Frame-Options": "DENY",
+    "Cache-Control": "no-store",
+}
+
+
+def _static_url(name: str) -> str:
+    """`/static/NAME?v=<content hash>`: cached forever by browsers, refreshed on change."""
+    path = STATIC_DIR / name
+    version = hashlib.sha256(path.read_bytes()).hexdigest()[:12] if path.is_file() else "0"
+    return f"/static/{quote(name)}?v={version}"
+
+
+def _datetime(value: datetime | None) -> str:
+    return "" if value is None else f"{value:%Y-%m-%d %H:%M} UTC"
+
+
+def _percent(value: float | None) -> str:
+    return "" if value is None else f"{value * 100:.0f}%"
+
+
+def _environment() -> jinja2.Environment:
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(TEMPLATES_DIR),
+        autoescape=True,  # every template, whatever its name: user text is always escaped
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    env.filters["dt"] = _datetime
+    env.filters["pct"] = _percent
+    env.globals["static"] = _static_url
+    env.globals["urlencode"] = urlencode
+    return env
+
+
+templates = _environment()
+
+
+@dataclass(frozen=True)
+class Viewer:
+    """Who is looking at a page, and the CSRF token their forms must carry."""
+
+    user: User | None
+    session: Session | None
+    csrf: str
+    new_form_cookie: str | None = None  # set on the response: a fresh anonymous form token
+
+    @property
+    def is_admin(self) -> bool:
+        return self.user is not None and self.user.is_admin
+
+
+def _form_digest(nonce: str) -> str:
+    return "form:" + hashlib.sha256(nonce.encode("utf-8", "surrogatepass")).hexdigest()
+
+
+def viewer(request: Request, db: DBDep) -> Viewer:
+    """The viewer from the session cookie (API tokens are for programs, not pages)."""
+    key = services(request).csrf_key
+    session = accounts.session_for(db, cookie=request.cookies.get(SESSION_COOKIE))
+    if session is not None:
+        return Viewer(
+            user=session.user, session=session, csrf=security.csrf_token(session.digest, key)
+        )
+    nonce = request.cookies.get(FORM_COOKIE, "")
+    fresh = None
+    if not 32 <= len(nonce) <= 64:
+        nonce = fresh = secrets.token_urlsafe(32)
+    return Viewer(
+        user=None,
+        session=None,
+        csrf=security.csrf_token(_form_digest(nonce), key),
+        new_form_cookie=fresh,
+    )
+
+
+ViewerDep = Annotated[Viewer, Depends(viewer)]
+
+
+def posted(request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] = "") -> Viewer:
+    """The viewer of a form POST, whose CSRF token must match the session, or on the login and
+    register forms the form cookie (a form loaded before logging in elsewhere); otherwise 403
+    and nothing is done."""
+    key = services(request).csrf_key
+    if who.session is not None and security.csrf_valid(csrf_token, who.session.digest, key):
+        return who
+    nonce = request.cookies.get(FORM_COOKIE)
+    anonymous_form = request.url.path in ANONYMOUS_FORMS
+    if anonymous_form and nonce and security.csrf_valid(csrf_token, _form_digest(nonce), key):
+        return who
+    raise Forbidden(
+        "This form's security token is missing or out of date. "
+        "Go back, reload the page and send the form again."
+    )
+
+
+PostedDep = Annotated[Viewer, Depends(posted)]
+
+
+class LoginRequired(Exception):
+    """Raised by pages that need an account: the visitor is sent to the login page."""
+
+    def __init__(self, next_path: str) -> None:
+        super().__init__(next_path)
+        self.next_path = next_path
+
+
+def signed_in(request: Request, who: Viewer) -> User:
+    """The viewer's account, or a trip to the login page that comes back here (to the home
+    page after a form: its address only takes POSTs)."""
+    if who.user is None:
+        raise LoginRequired(request.url.path if request.method == "GET" else "/")
+    return who.user
+
+
+def login_redirect(_request: Request, exc: Exception) -> Response:
+    assert isinstance(exc, LoginRequired)
+    return redirect(f"/login?{urlencode({'next': exc.next_path})}")
+
+
+def safe_next(path: str | None, default: str = "/") -> str:
+    """A local path to go to after logging in; anything else (another site) is ignored."""
+    if not path or not path.startswith("/") or path.startswith("//") or "\\" in path:
+        return default
+    if any(ord(c) <= 0x20 or ord(c) == 0x7F for c in path):
+        return default  # browsers drop tabs and newlines: "/\t/evil.example" is "//evil.example"
+    if urlsplit(path).netloc:
+        return default
+    return path
+
+
+def redirect(url: str) -> Response:
+    return Response(status_code=303, headers={"Location": url, "Cache-Control": "no-store"})
+
+
+def render(
+    request: Request, who: Viewer | None, template: str, *, status: int = 200, **context: Any
+) -> HTMLResponse:
+    """Render a page (autoescaped) with the security headers and, if needed, the form cookie."""
+    html = templates.get_template(template).render(
+        viewer=who, path=request.url.path, csrf=who.csrf if who else "", **context
+    )
+    response = HTMLResponse(html, status_code=status, headers=SECURITY_HEADERS)
+    if who is not None and who.new_form_cookie is not None:
+        response.set_cookie(
+            FORM_COOKIE,
+            who.new_form_cookie,
+            httponly=True,
+            secure=services(request).settings.cookie_secure,
+            samesite="lax",
+            path="/",
+        )
+    return response
+
+
+def error_page(request: Request, status: int, title: str, detail: ErrorDetail) -> HTMLResponse:
+    """The HTML twin of the API's error body, for pages (no database access: it may be down)."""
+    return render(request, None, "error.html", status=status, title=title, detail=detail)
+
+
+def wants_html(request: Request) -> bool:
+    """Pages get HTML errors; the API, the worker API, health checks, metrics and /docs keep
+    JSON."""
+    return not request.url.path.startswith(MACHINE_PATHS)
+
+
+def install(app: FastAPI, routers: Iterable[APIRouter]) -> None:
+    """Serve the pages of `routers` and their static files from `app`."""
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    app.add_exception_handler(LoginRequired, login_redirect)
+    for router in routers:
+        app.include_router(router)

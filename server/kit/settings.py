@@ -1,0 +1,179 @@
+"""The server's settings: one object, read from ``MANIEVAL_*`` environment variables.
+
+Defaults are the embedded single-machine mode (SQLite in the data directory, the in-process
+queue). Production sets ``MANIEVAL_DEV_MODE=false`` (the default), which makes a secret key
+mandatory. Every field is documented in ``docs/server.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+from pathlib import Path
+from typing import Annotated, Literal
+
+import platformdirs
+from pydantic import BeforeValidator, Field, SecretStr, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from server.kit.ratelimit import Rate
+
+
+def _default_data_dir() -> Path:
+    return Path(platformdirs.user_data_dir("manieval", appauthor=False))
+
+
+def _split(value: object) -> object:
+    if isinstance(value, str):
+        return [item.strip() for item in value.split(",") if item.strip()]
+    return value
+
+
+CommaList = Annotated[list[str], NoDecode, BeforeValidator(_split)]
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="MANIEVAL_", extra="ignore", frozen=True)
+
+    dev_mode: bool = False
+    """Development/demo mode: allows a missing secret key (an ephemeral one is generated)."""
+
+    data_dir: Path = Field(default_factory=_default_data_dir)
+    """Where the embedded database, policy logs and videos live."""
+
+    database_url: str = ""
+    """SQLAlchemy URL; empty means ``sqlite:///<data_dir>/manieval.db``."""
+
+    secret_key: SecretStr | None = None
+    """Signs CSRF tokens; required outside dev mode (at least 32 characters)."""
+
+    seed_secret: SecretStr | None = None
+    """Derives the hidden test-phase seeds; required outside dev mode."""
+
+    worker_token: SecretStr | None = None
+    """Bearer token the worker presents to the internal results API (never given to a policy)."""
+
+    allowed_registries: CommaList = Field(default_factory=lambda: ["127.0.0.1:5000"])
+    """Registries submissions may name (domain[:port]), comma-separated."""
+
+    insecure_registries: CommaList = Field(default_factory=list)
+    """Registries spoken to over plain HTTP (a local test registry), comma-separated."""
+
+    registry_timeout: float = 10.0
+    max_image_bytes: int = 4 * 1024**3
+    """Refuse images whose layers sum to more than this."""
+
+    allow_local_policies: bool = False
+    """Accept ``local:NAME`` submissions of the bundled example policies (demo only)."""
+
+    queue: Literal["inline", "celery"] = "inline"
+    """``inline``: worker threads in the server process (embedded default, no Redis);
+    ``celery``: Celery workers on Redis (``manieval`` in k8s/, docs/deploy.md)."""
+
+    broker_url: str = "redis://127.0.0.1:6379/0"
+    celery_queue: str = "manieval"
+
+    docker_engine_url: str | None = None
+    """Docker-API engine that runs policy images (Docker, or Podman's API service, e.g.
+    ``unix:///run/manieval/podman.sock``); unset: image submissions end ``error``."""
+
+    policy_memory_mib: int = Field(default=2048, ge=64)
+    policy_cpus: float = Field(default=1.0, gt=0)
+
+    executor: Literal["docker", "kubernetes"] = "docker"
+    """Where policy images run: ``docker`` (the engine above, evaluator in the worker) or
+    ``kubernetes`` (one Job per attempt, evaluator and policy in its pod). Bundled
+    ``local:`` policies always run in the worker, when allowed."""
+
+    k8s_namespace: str = "manieval-eval"
+    """The namespace evaluation Jobs run in (Pod Security "restricted", default-deny network)."""
+    k8s_in_cluster: bool = False
+    """Authenticate with the pod's service account; otherwise a kubeconfig is used."""
+    k8s_kubeconfig: Path | None = None
+    """The kubeconfig file (default: ``$KUBECONFIG`` or ``~/.kube/config``)."""
+    k8s_api_url: str | None = None
+    """Talk to this API URL without credentials (``kubectl proxy``; the tests' double)."""
+    evaluator_image: str | None = None
+    """The evaluator image the Jobs run (``docker/evaluator``), ideally pinned by digest."""
+    evaluator_cpu: str = "2"
+    evaluator_memory: str = "4Gi"
+    k8s_runtime_class: str | None = None
+    """RuntimeClass of evaluation pods, e.g. ``gvisor`` (sandboxes the policy's syscalls)."""
+    k8s_poll_interval: float = Field(default=5.0, gt=0, le=300)
+    """Seconds between looks at a running Job (status, progress, image pulls)."""
+
+    inline_workers: int = Field(default=1, ge=1, le=64)
+    """Evaluations the embedded server runs at once."""
+
+    max_running_per_user: int = Field(default=2, ge=1, le=1000)
+    """Evaluations of one participant running at once, across challenges (fairness)."""
+
+    rate_limit_backend: Literal["memory", "redis"] = "memory"
+    """``memory``: per process; ``redis``: shared by every API process (production)."""
+    redis_url: str = "redis://127.0.0.1:6379/0"
+
+    register_rate: str = "5/hour"
+    login_rate: str = "10/minute"
+    token_rate: str = "10/hour"
+    submit_rate: str = "20/hour"
+
+    leaderboard_max_age: float = Field(default=1.0, ge=0, le=3600)
+    """Seconds a rendered leaderboard page is served before checking for a newer version."""
+
+    log_format: Literal["text", "json"] = "text"
+    """``json``: one JSON object per line (for a log pipeline); ``text`` for people."""
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    metrics_token: SecretStr | None = None
+    """When set, ``/metrics`` asks for ``Authorization: Bearer <token>`` (Prometheus's
+    ``authorization`` setting); unset, keep ``/metrics`` off the public ingress."""
+
+    session_days: int = 14
+    cookie_secure: bool = True
+    """Send the session cookie only over HTTPS; the embedded demo turns it off."""
+
+    @model_validator(mode="after")
+    def _check(self) -> Settings:
+        for name in ("secret_key", "seed_secret", "worker_token"):
+            value: SecretStr | None = getattr(self, name)
+            if value is None and self.dev_mode:
+                continue  # generated and kept in the data directory
+            if value is None or len(value.get_secret_value()) < 32:
+                raise ValueError(
+                    f"MANIEVAL_{name.upper()} must be set to at least 32 characters "
+                    "(or MANIEVAL_DEV_MODE=true for a local try-out, which generates it)"
+                )
+        for name in ("register_rate", "login_rate", "token_rate", "submit_rate"):
+            Rate.parse(getattr(self, name))
+        return self
+
+    @property
+    def resolved_database_url(self) -> str:
+        return self.database_url or f"sqlite:///{self.data_dir / 'manieval.db'}"
+
+    def rate(self, name: Literal["register", "login", "token", "submit"]) -> Rate:
+        return Rate.parse(getattr(self, f"{name}_rate"))
+
+    def secret(self, name: SecretName) -> str:
+        """The secret's value. In dev mode a missing one is generated once and kept (0600) in
+        the data directory, so that a restarted demo keeps its sessions and test seeds."""
+        value: SecretStr | None = getattr(self, name)
+        if value is not None:
+            return value.get_secret_value()
+        return _generated_secret(self.data_dir / "secrets.json", name)
+
+
+SecretName = Literal["secret_key", "seed_secret", "worker_token"]
+
+
+def _generated_secret(path: Path, name: str) -> str:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    stored: dict[str, str] = json.loads(path.read_text()) if path.exists() else {}
+    if name not in stored:
+        stored[name] = secrets.token_urlsafe(32)
+        tmp = path.with_suffix(".tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as f:
+            json.dump(stored, f)
+        os.replace(tmp, path)
+    return stored[name]

@@ -1,0 +1,345 @@
+"""Leaderboards: one row per user (their best public succeeded submission) plus baselines.
+
+Rows live in ``leaderboard_entries``, recomputed for one (phase, user) whenever something that
+decides them changes (a result, a re-run, hiding, visibility, the baseline flag). Each change
+bumps the phase's ``leaderboard_version``; readers cache pages per version, so a leaderboard
+request costs one indexed lookup of the version when nothing changed, and a page read by the
+rank index when something did.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import and_, delete, func, select, update
+from sqlalchemy.orm import Session as DB
+
+from server.challenges.charts import ScorePoint
+from server.challenges.service import get_challenge, get_phase
+from server.kit.errors import NotFound
+from server.models import (
+    Challenge,
+    LeaderboardEntry,
+    Phase,
+    State,
+    Submission,
+    TaskResultRow,
+    User,
+)
+
+
+def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
+    """Recompute a user's rows in a phase's leaderboard (call inside the changing transaction)."""
+    # Serialise refreshes of one user: the unique (phase, owner) row must not be raced.
+    db.execute(select(User.id).where(User.id == user_id).with_for_update())
+    db.execute(
+        delete(LeaderboardEntry).where(
+            LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.user_id == user_id
+        )
+    )
+    eligible = db.scalars(
+        select(Submission)
+        .where(
+            Submission.phase_id == phase_id,
+            Submission.user_id == user_id,
+            Submission.state == State.SUCCEEDED,
+            Submission.public.is_(True),
+            Submission.hidden.is_(False),
+            Submission.score.is_not(None),
+        )
+        .order_by(Submission.score.desc(), Submission.created_at, Submission.id)
+    ).all()
+    best_regular = next((s for s in eligible if not s.baseline), None)
+    chosen = [s for s in eligible if s.baseline]
+    if best_regular is not None:
+        chosen.append(best_regular)
+    for submission in chosen:
+        assert submission.score is not None
+        db.add(
+            LeaderboardEntry(
+                phase_id=phase_id,
+                submission_id=submission.id,
+                user_id=user_id,
+                owner_key=None if submission.baseline else user_id,
+                baseline=submission.baseline,
+                score=submission.score,
+                submitted_at=submission.created_at,
+                username=submission.user.username,
+                summary=summary(db, submission=submission),
+            )
+        )
+    db.execute(
+        update(Phase)
+        .where(Phase.id == phase_id)
+        .values(leaderboard_version=Phase.leaderboard_version + 1)
+    )
+    db.flush()
+
+
+def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
+    """Per-condition scores and per-task success with intervals, for the leaderboard row."""
+    rows = db.scalars(
+        select(TaskResultRow)
+        .where(
+            TaskResultRow.submission_id == submission.id,
+            TaskResultRow.attempt == submission.attempt,
+        )
+        .order_by(TaskResultRow.id)
+    ).all()
+    conditions: dict[str, list[float]] = {}
+    tasks: dict[str, dict[str, float]] = {}
+    first: str | None = None
+    for row in rows:
+        first = first or row.condition
+        conditions.setdefault(row.condition, []).append(row.success_rate)
+        if row.condition == first:
+            tasks[row.env_id] = {
+                "success_rate": row.success_rate,
+                "ci_low": row.ci_low,
+                "ci_high": row.ci_high,
+            }
+    return {
+        "conditions": {name: sum(v) / len(v) for name, v in conditions.items()},
+        "tasks": tasks,
+    }
+
+
+def board_version(db: DB, *, slug: str, phase: str) -> tuple[int, int]:
+    """The id of a challenge's phase and its leaderboard version (one indexed lookup); the
+    errors of `get_challenge` and `get_phase` when there is no such phase."""
+    found = db.execute(
+        select(Phase.id, Phase.leaderboard_version)
+        .join(Challenge, Phase.challenge_id == Challenge.id)
+        .where(Challenge.slug == slug, Phase.name == phase)
+    ).first()
+    if found is None:
+        get_phase(get_challenge(db, slug=slug), phase)  # raises the precise 404 / 422
+        raise NotFound(f"no phase {phase!r}")  # pragma: no cover - raced with a delete
+    return found[0], found[1]
+
+
+def baseline_points(db: DB, *, phase_id: int) -> list[tuple[str, float, datetime]]:
+    """The phase's baselines as (label, score, submitted at), best first, for its chart."""
+    rows = db.execute(
+        select(
+            LeaderboardEntry.username,
+            LeaderboardEntry.submission_id,
+            LeaderboardEntry.score,
+            LeaderboardEntry.submitted_at,
+        )
+        .where(LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.baseline.is_(True))
+        .order_by(LeaderboardEntry.score.desc())
+    ).all()
+    return [(f"baseline {name} #{sid}", score, at) for name, sid, score, at in rows]
+
+
+def record_points(db: DB, *, phase_id: int) -> list[ScorePoint]:
+    """Public succeeded submissions that beat every earlier one: the database keeps the
+    running best (a window function), so only the few records travel, however many ran."""
+    eligible = and_(
+        Submission.phase_id == phase_id,
+        Submission.state == State.SUCCEEDED,
+        Submission.public.is_(True),
+        Submission.hidden.is_(False),
+        Submission.baseline.is_(False),
+        Submission.score.is_not(None),
+    )
+    order = (Submission.created_at, Submission.id)
+    ranked = (
+        select(
+            Submission.id,
+            Submission.created_at,
+            Submission.score,
+            User.username,
+            func.max(Submission.score).over(order_by=order, rows=(None, -1)).label("before"),
+        )
+        .join(User, User.id == Submission.user_id)
+        .where(eligible)
+        .subquery()
+    )
+    rows = db.execute(
+        select(ranked.c.id, ranked.c.created_at, ranked.c.score, ranked.c.username)
+        .where((ranked.c.before.is_(None)) | (ranked.c.score > ranked.c.before))
+        .order_by(ranked.c.created_at, ranked.c.id)
+    ).all()
+    return [
+        ScorePoint(at=at, score=score, username=name, submission_id=sid)
+        for sid, at, score, name in rows
+    ]
+
+
+@dataclass(frozen=True)
+class Row:
+    rank: int | None  # None for baselines: they are shown for reference, not ranked
+    username: str
+    submission_id: int
+    baseline: bool
+    score: float
+    submitted_at: datetime
+    conditions: dict[str, float]
+    tasks: dict[str, dict[str, float]]
+
+
+@dataclass(frozen=True)
+class Board:
+    rows: list[Row]
+    total: int
+
+
+@dataclass(frozen=True)
+class _Meta:
+    total: int
+    baselines: list[tuple[float, datetime, int]]  # rank keys of the baseline rows
+
+
+class LeaderboardCache:
+    """Pages of ranked rows per (phase, version, page); a bounded LRU shared by the threads.
+
+    A miss reads just that page by the rank index (and, once per version, the row count and
+    the baselines' positions, which fix the ranks of the rows after them), so even the first
+    request after a change costs a few indexed queries, not a read of the whole board.
+    """
+
+    def __init__(self, size: int = 256) -> None:
+        self._pages: OrderedDict[tuple[int, int, int, int], Board] = OrderedDict()
+        self._meta: OrderedDict[tuple[int, int], _Meta] = OrderedDict()
+        self._size = size
+        self._lock = threading.Lock()
+
+    def page(self, db: DB, *, phase_id: int, page: int, per_page: int) -> Board:
+        """One page of the phase's board in rank order, from the cache when it is current."""
+        version = db.scalar(select(Phase.leaderboard_version).where(Phase.id == phase_id)) or 0
+        key = (phase_id, version, page, per_page)
+        with self._lock:
+            if (hit := self._pages.get(key)) is not None:
+                self._pages.move_to_end(key)
+                return hit
+            meta = self._meta.get((phase_id, version))
+        if meta is None:
+            meta = _read_meta(db, phase_id)
+        board = Board(rows=_read_page(db, phase_id, page, per_page, meta), total=meta.total)
+        with self._lock:
+            self._meta[(phase_id, version)] = meta
+            self._pages[key] = board
+            for cache in (self._pages, self._meta):
+                while len(cache) > self._size:
+                    cache.popitem(last=False)
+        return board
+
+
+_RANK_ORDER = (LeaderboardEntry.score.desc(), LeaderboardEntry.submitted_at, LeaderboardEntry.id)
+
+
+def _read_meta(db: DB, phase_id: int) -> _Meta:
+    total = db.scalar(
+        select(func.count())
+        .select_from(LeaderboardEntry)
+        .where(LeaderboardEntry.phase_id == phase_id)
+    )
+    baselines = db.execute(
+        select(LeaderboardEntry.score, LeaderboardEntry.submitted_at, LeaderboardEntry.id)
+        .where(LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.baseline.is_(True))
+        .order_by(*_RANK_ORDER)
+    ).all()
+    return _Meta(total=total or 0, baselines=[(s, t, i) for s, t, i in baselines])
+
+
+def _ahead(a: tuple[float, datetime, int], b: tuple[float, datetime, int]) -> bool:
+    """Whether rank key `a` comes before `b` (higher score, then earlier, then lower id)."""
+    return (-a[0], a[1], a[2]) < (-b[0], b[1], b[2])
+
+
+def _read_page(db: DB, phase_id: int, page: int, per_page: int, meta: _Meta) -> list[Row]:
+    offset = (page - 1) * per_page
+    entries = db.execute(
+        select(
+            LeaderboardEntry.id,
+            LeaderboardEntry.username,
+            LeaderboardEntry.submission_id,
+            LeaderboardEntry.baseline,
+            LeaderboardEntry.score,
+            LeaderboardEntry.submitted_at,
+            LeaderboardEntry.summary,
+        )
+        .where(LeaderboardEntry.phase_id == phase_id)
+        .order_by(*_RANK_ORDER)
+        .offset(offset)
+        .limit(per_page)
+    ).all()
+    if not entries:
+        return []
+    first = (entries[0].score, entries[0].submitted_at, entries[0].id)
+    baselines_before = sum(1 for b in meta.baselines if _ahead(b, first))
+    rank = offset - baselines_before
+    rows: list[Row] = []
+    for entry_id, username, submission_id, baseline, score, submitted_at, data in entries:
+        del entry_id
+        if not baseline:
+            rank += 1
+        rows.append(
+            Row(
+                rank=None if baseline else rank,
+                username=username,
+                submission_id=submission_id,
+                baseline=baseline,
+                score=score,
+                submitted_at=submitted_at,
+                conditions=data.get("conditions", {}),
+                tasks=data.get("tasks", {}),
+            )
+        )
+    return rows
+
+
+PageKey = tuple[str, str, int, int, str]  # slug, phase, page, per_page, format
+
+
+@dataclass
+class Rendered:
+    """A leaderboard response as sent, and the board version it shows."""
+
+    version: int
+    body: bytes
+    media_type: str
+    headers: dict[str, str] = field(default_factory=dict)
+    checked: float = 0.0  # time.monotonic() when the version was last confirmed
+
+
+class RenderedPages:
+    """Rendered leaderboard responses, trusted for `max_age` seconds after each check."""
+
+    def __init__(self, max_age: float, size: int = 512) -> None:
+        self._max_age = max_age
+        self._size = size
+        self._pages: OrderedDict[PageKey, Rendered] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def fresh(self, key: PageKey) -> Rendered | None:
+        with self._lock:
+            found = self._pages.get(key)
+            if found is None or time.monotonic() - found.checked >= self._max_age:
+                return None
+            self._pages.move_to_end(key)
+            return found
+
+    def revalidate(self, key: PageKey, version: int) -> Rendered | None:
+        """The cached response if it still shows `version` (and mark it checked now)."""
+        with self._lock:
+            found = self._pages.get(key)
+            if found is None or found.version != version:
+                return None
+            found.checked = time.monotonic()
+            return found
+
+    def store(self, key: PageKey, rendered: Rendered) -> None:
+        rendered.checked = time.monotonic()
+        with self._lock:
+            self._pages[key] = rendered
+            self._pages.move_to_end(key)
+            while len(self._pages) > self._size:
+                self._pages.popitem(last=False)

@@ -1,0 +1,44 @@
+"""The database schema (SQLAlchemy 2.0 typed models), one module per domain.
+
+Every public name is re-exported here, so ``from server.models import Submission`` works
+whichever module defines it. Alembic migrations in ``alembic/versions`` are the only way this
+schema reaches a database; ``alembic check`` in the tests proves the two agree.
+"""
+
+from server.models.accounts import ApiToken, Session, User
+from server.models.base import NAMING, Base, UTCDateTime, utcnow
+from server.models.challenges import Challenge, Phase
+from server.models.leaderboard import LeaderboardEntry
+from server.models.submissions import (
+    ACTIVE_STATES,
+    FINAL_STATES,
+    QUOTA_STATES,
+    EpisodeResultRow,
+    Outbox,
+    State,
+    Submission,
+    TaskResultRow,
+    Transition,
+)
+
+__all__ = [
+    "ACTIVE_STATES",
+    "FINAL_STATES",
+    "NAMING",
+    "QUOTA_STATES",
+    "ApiToken",
+    "Base",
+    "Challenge",
+    "EpisodeResultRow",
+    "LeaderboardEntry",
+    "Outbox",
+    "Phase",
+    "Session",
+    "State",
+    "Submission",
+    "TaskResultRow",
+    "Transition",
+    "UTCDateTime",
+    "User",
+    "utcnow",
+]

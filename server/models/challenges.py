@@ -1,0 +1,51 @@
+"""Challenges and their phases (dev, test, ...), each with its own leaderboard."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from sqlalchemy import Boolean, ForeignKey, Integer, String, Text, UniqueConstraint
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from server.models.base import Base, utcnow
+
+
+class Challenge(Base):
+    __tablename__ = "challenges"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    slug: Mapped[str] = mapped_column(String(64), unique=True)
+    title: Mapped[str] = mapped_column(String(200))
+    description: Mapped[str] = mapped_column(Text, default="")
+    suite_yaml: Mapped[str] = mapped_column(Text)
+    suite_hash: Mapped[str] = mapped_column(String(64))
+    quota_per_day: Mapped[int] = mapped_column(Integer, default=5)
+    quota_concurrent: Mapped[int] = mapped_column(Integer, default=1)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
+
+    phases: Mapped[list[Phase]] = relationship(
+        back_populates="challenge", order_by="Phase.id", cascade="all, delete-orphan"
+    )
+
+
+class Phase(Base):
+    __tablename__ = "phases"
+    __table_args__ = (UniqueConstraint("challenge_id", "name"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    challenge_id: Mapped[int] = mapped_column(ForeignKey("challenges.id", ondelete="CASCADE"))
+    name: Mapped[str] = mapped_column(String(32))
+    public_seeds: Mapped[bool] = mapped_column(Boolean)
+    seed_commitment: Mapped[str] = mapped_column(String(64))
+    opens_at: Mapped[datetime | None]
+    closes_at: Mapped[datetime | None]
+    leaderboard_version: Mapped[int] = mapped_column(Integer, default=0)
+    """Bumped whenever the phase's leaderboard changes: the key of the API's cache."""
+
+    challenge: Mapped[Challenge] = relationship(back_populates="phases")
+
+    def is_open(self, now: datetime) -> bool:
+        return (self.opens_at is None or self.opens_at <= now) and (
+            self.closes_at is None or now < self.closes_at
+        )

@@ -1,0 +1,163 @@
+"""Submissions: their state, the transitions between states, their results, and the outbox of
+work for the queue."""
+
+from __future__ import annotations
+
+import enum
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import (
+    BigInteger,
+    Boolean,
+    CheckConstraint,
+    Enum,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from server.models.accounts import User
+from server.models.base import Base, utcnow
+from server.models.challenges import Challenge, Phase
+
+
+class State(enum.StrEnum):
+    QUEUED = "queued"
+    LAUNCHING = "launching"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"  # the policy's fault
+    ERROR = "error"  # ours
+    CANCELLED = "cancelled"
+    TIMED_OUT = "timed_out"
+
+    @property
+    def final(self) -> bool:
+        return self in FINAL_STATES
+
+
+FINAL_STATES = frozenset(
+    {State.SUCCEEDED, State.FAILED, State.ERROR, State.CANCELLED, State.TIMED_OUT}
+)
+ACTIVE_STATES = frozenset({State.QUEUED, State.LAUNCHING, State.RUNNING})
+# What counts against a quota: work the participant caused. Our errors and cancels do not.
+QUOTA_STATES = frozenset({State.RUNNING, State.SUCCEEDED, State.FAILED, State.TIMED_OUT})
+
+_state_enum = Enum(
+    State, name="submission_state", values_callable=lambda e: [m.value for m in e], length=16
+)
+
+
+class Submission(Base):
+    __tablename__ = "submissions"
+    __table_args__ = (
+        Index("ix_submissions_user_created", "user_id", "created_at"),
+        Index("ix_submissions_state", "state"),
+        Index("ix_submissions_phase_user", "phase_id", "user_id"),
+        CheckConstraint("attempt >= 1", name="attempt_positive"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"))
+    challenge_id: Mapped[int] = mapped_column(ForeignKey("challenges.id", ondelete="CASCADE"))
+    phase_id: Mapped[int] = mapped_column(ForeignKey("phases.id", ondelete="CASCADE"))
+    image: Mapped[str] = mapped_column(String(512))
+    """What the participant submitted (a tag reference, or ``local:NAME`` in the demo)."""
+    pinned_image: Mapped[str] = mapped_column(String(512))
+    """What runs: ``domain/path@sha256:...`` resolved at submit time, or ``local:NAME``."""
+    image_bytes: Mapped[int | None] = mapped_column(BigInteger)
+    description: Mapped[str] = mapped_column(String(2000), default="")
+    public: Mapped[bool] = mapped_column(Boolean, default=True)
+    hidden: Mapped[bool] = mapped_column(Boolean, default=False)
+    baseline: Mapped[bool] = mapped_column(Boolean, default=False)
+    state: Mapped[State] = mapped_column(_state_enum, default=State.QUEUED)
+    reason: Mapped[str] = mapped_column(String(2000), default="")
+    attempt: Mapped[int] = mapped_column(Integer, default=1)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow)
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+    heartbeat_at: Mapped[datetime | None]
+    deadline_at: Mapped[datetime | None]
+    score: Mapped[float | None] = mapped_column(Float)
+    progress: Mapped[dict[str, Any] | None]
+    """The worker's last progress report: episodes done and planned, current task."""
+    log_tail: Mapped[str] = mapped_column(Text, default="")
+    result: Mapped[dict[str, Any] | None]
+    """The evaluator's result document of the current attempt (schema evaluator.results)."""
+
+    user: Mapped[User] = relationship()
+    challenge: Mapped[Challenge] = relationship()
+    phase: Mapped[Phase] = relationship()
+
+
+class Transition(Base):
+    __tablename__ = "transitions"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    submission_id: Mapped[int] = mapped_column(
+        ForeignKey("submissions.id", ondelete="CASCADE"), index=True
+    )
+    attempt: Mapped[int] = mapped_column(Integer)
+    from_state: Mapped[State | None] = mapped_column(_state_enum)
+    to_state: Mapped[State] = mapped_column(_state_enum)
+    reason: Mapped[str] = mapped_column(String(2000), default="")
+    at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class TaskResultRow(Base):
+    __tablename__ = "task_results"
+    __table_args__ = (UniqueConstraint("submission_id", "attempt", "condition", "env_id"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    submission_id: Mapped[int] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"))
+    attempt: Mapped[int] = mapped_column(Integer)
+    condition: Mapped[str] = mapped_column(String(32))
+    env_id: Mapped[str] = mapped_column(String(64))
+    episodes: Mapped[int] = mapped_column(Integer)
+    successes: Mapped[int] = mapped_column(Integer)
+    success_rate: Mapped[float] = mapped_column(Float)
+    ci_low: Mapped[float] = mapped_column(Float)
+    ci_high: Mapped[float] = mapped_column(Float)
+    mean_steps: Mapped[float] = mapped_column(Float)
+
+
+class EpisodeResultRow(Base):
+    __tablename__ = "episode_results"
+    __table_args__ = (UniqueConstraint("task_result_id", "index"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    task_result_id: Mapped[int] = mapped_column(ForeignKey("task_results.id", ondelete="CASCADE"))
+    index: Mapped[int] = mapped_column(Integer)
+    seed: Mapped[int] = mapped_column(BigInteger)
+    success_once: Mapped[bool] = mapped_column(Boolean)
+    success_at_end: Mapped[bool] = mapped_column(Boolean)
+    steps: Mapped[int] = mapped_column(Integer)
+    episode_return: Mapped[float] = mapped_column(Float)
+    wall_time_s: Mapped[float] = mapped_column(Float)
+    invalid_actions: Mapped[int] = mapped_column(Integer)
+    clipped_actions: Mapped[int] = mapped_column(Integer)
+    failure: Mapped[str | None] = mapped_column(String(2000))
+
+
+class Outbox(Base):
+    """Work to hand to the queue, written in the same transaction as the state it acts on.
+
+    The dispatcher sends rows after the commit and marks them sent; a crash between the commit
+    and the broker leaves the row unsent, and the next dispatch picks it up.
+    """
+
+    __tablename__ = "outbox"
+    __table_args__ = (Index("ix_outbox_pending", "sent_at", "id"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    submission_id: Mapped[int] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"))
+    attempt: Mapped[int] = mapped_column(Integer)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    sent_at: Mapped[datetime | None]

@@ -1,0 +1,200 @@
+"""A submission's page: live timeline, results with intervals, episodes, log, videos, and the
+owner's and administrators' actions.
+
+Who sees what is the API's rule (`server.submissions.service`): a submission others may not see is a
+404, and its episodes, log and videos are for its owner and administrators only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Form, Query, Request
+from fastapi.responses import FileResponse, Response
+from sqlalchemy.orm import Session as DB
+
+from server.challenges.charts import TaskSuccess, success_bars
+from server.kit.deps import DBDep, Id, services
+from server.kit.errors import Forbidden, NotFound
+from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
+from server.models import EpisodeResultRow, State, Submission, User
+from server.submissions.service import (
+    cancel,
+    condition_means,
+    edit,
+    episode_rows,
+    get_owned,
+    get_visible,
+    owned_or_admin,
+    rerun,
+    task_rows,
+    transitions_of,
+)
+
+router = APIRouter(include_in_schema=False)
+
+EPISODES_PER_PAGE = 100
+ENDED_BADLY = frozenset({State.FAILED, State.ERROR, State.TIMED_OUT, State.CANCELLED})
+PageNo = Annotated[int, Query(ge=1, le=100_000)]
+
+
+@dataclass(frozen=True)
+class Episode:
+    condition: str
+    env_id: str
+    row: EpisodeResultRow
+
+
+def _episodes(db: DB, s: Submission, page: int) -> tuple[list[Episode], int]:
+    rows, total = episode_rows(db, submission=s, page=page, per_page=EPISODES_PER_PAGE)
+    return [Episode(condition=c, env_id=e, row=r) for r, c, e in rows], total
+
+
+def _videos(s: Submission) -> list[dict[str, Any]]:
+    return list((s.result or {}).get("videos") or [])
+
+
+def outcome(db: DB, s: Submission, who: Viewer, episode_page: int = 1) -> dict[str, Any]:
+    """What the page shows below the live timeline: it changes when the submission ends."""
+    private = owned_or_admin(s, who.user)
+    rows = task_rows(db, submission=s)
+    episodes, episode_total = _episodes(db, s, episode_page) if private else ([], 0)
+    chart_rows = [
+        TaskSuccess(
+            condition=r.condition,
+            env_id=r.env_id,
+            successes=r.successes,
+            episodes=r.episodes,
+            rate=r.success_rate,
+            low=r.ci_low,
+            high=r.ci_high,
+        )
+        for r in rows
+    ]
+    return {
+        "submission": s,
+        "private": private,
+        "tasks": rows,
+        "chart": success_bars(chart_rows) if rows else None,
+        "conditions": condition_means(rows),
+        "episodes": episodes,
+        "episode_total": episode_total,
+        "episode_page": episode_page,
+        "episode_pages": max(1, -(-episode_total // EPISODES_PER_PAGE)),
+        "show_seed": s.phase.public_seeds,
+        "videos": _videos(s) if private else [],
+        "ended_badly": s.state in ENDED_BADLY,
+        "final": s.state.final,
+    }
+
+
+@router.get("/submissions/{submission_id}")
+def submission_page(
+    submission_id: Id, request: Request, who: ViewerDep, db: DBDep, episodes: PageNo = 1
+) -> Response:
+    """The submission, its state timeline (kept live by /events) and, once ended, results."""
+    s = get_visible(db, submission_id=submission_id, user=who.user)
+    transitions = transitions_of(db, submission_id=s.id)
+    return render(
+        request,
+        who,
+        "submission.html",
+        transitions=transitions,
+        last_transition=transitions[-1].id if transitions else 0,
+        **outcome(db, s, who, episodes),
+    )
+
+
+@router.get("/submissions/{submission_id}/outcome")
+def outcome_fragment(submission_id: Id, request: Request, who: ViewerDep, db: DBDep) -> Response:
+    """The part of the page below the timeline, fetched by the page's script when it ends."""
+    s = get_visible(db, submission_id=submission_id, user=who.user)
+    return render(request, who, "_outcome.html", **outcome(db, s, who))
+
+
+@router.get("/submissions/{submission_id}/videos/{index}")
+def video(submission_id: Id, index: int, request: Request, who: ViewerDep, db: DBDep) -> Response:
+    """An episode video of the current attempt (owner and administrators)."""
+    s = get_owned(db, submission_id=submission_id, user=who.user)
+    videos = _videos(s)
+    if not 0 <= index < len(videos):
+        raise NotFound(f"no video {index}")
+    root = services(request).settings.data_dir.resolve()
+    path = Path(str(videos[index].get("path", ""))).resolve()
+    if not path.is_relative_to(root) or not path.is_file():  # only files the server wrote
+        raise NotFound(f"no video {index}")
+    return FileResponse(path, media_type="video/mp4")
+
+
+# Actions ------------------------------------------------------------------------------------
+
+
+def _admin(request: Request, who: Viewer) -> User:
+    user = signed_in(request, who)
+    if not user.is_admin:
+        raise Forbidden("admins only")
+    return user
+
+
+Flag = Annotated[str, Form(pattern="^(true|false)$")]
+
+
+def _edit(
+    request: Request,
+    who: Viewer,
+    db: DB,
+    submission_id: int,
+    *,
+    admin: bool = False,
+    public: bool | None = None,
+    hidden: bool | None = None,
+    baseline: bool | None = None,
+) -> Response:
+    """An owner's (or, with `admin`, only an admin's) change of a flag, then back to the page."""
+    user = _admin(request, who) if admin else signed_in(request, who)
+    s = get_owned(db, submission_id=submission_id, user=user)
+    edit(db, user=user, submission=s, public=public, hidden=hidden, baseline=baseline)
+    db.commit()
+    return redirect(f"/submissions/{s.id}")
+
+
+@router.post("/submissions/{submission_id}/cancel")
+def cancel_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep) -> Response:
+    user = signed_in(request, who)
+    s = get_owned(db, submission_id=submission_id, user=user)
+    cancel(db, user, s)
+    db.commit()
+    return redirect(f"/submissions/{s.id}")
+
+
+@router.post("/submissions/{submission_id}/visibility")
+def visibility_action(
+    submission_id: Id, request: Request, who: PostedDep, db: DBDep, public: Flag
+) -> Response:
+    return _edit(request, who, db, submission_id, public=public == "true")
+
+
+@router.post("/submissions/{submission_id}/rerun")
+def rerun_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep) -> Response:
+    admin = _admin(request, who)
+    s = get_owned(db, submission_id=submission_id, user=admin)
+    rerun(db, admin=admin, submission=s)
+    db.commit()
+    services(request).dispatcher.dispatch()
+    return redirect(f"/submissions/{s.id}")
+
+
+@router.post("/submissions/{submission_id}/hidden")
+def hidden_action(
+    submission_id: Id, request: Request, who: PostedDep, db: DBDep, hidden: Flag
+) -> Response:
+    return _edit(request, who, db, submission_id, admin=True, hidden=hidden == "true")
+
+
+@router.post("/submissions/{submission_id}/baseline")
+def baseline_action(
+    submission_id: Id, request: Request, who: PostedDep, db: DBDep, baseline: Flag
+) -> Response:
+    return _edit(request, who, db, submission_id, admin=True, baseline=baseline == "true")

@@ -1,0 +1,148 @@
+"""What the worker reports: state changes, progress and results of one (submission, attempt).
+
+Idempotent: reporting the same final state twice is a no-op, results of an attempt replace any
+earlier copy of that attempt's results, and a report about an attempt that is no longer the
+submission's current one is refused (`Conflict`), so a late worker cannot overwrite a re-run.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import delete, update
+from sqlalchemy.orm import Session as DB
+
+from evaluator.results import EvaluationResult
+from server.kit.errors import Conflict, Invalid, NotFound
+from server.leaderboard.service import refresh
+from server.models import (
+    EpisodeResultRow,
+    State,
+    Submission,
+    TaskResultRow,
+    utcnow,
+)
+from server.submissions.states import transition
+
+LOG_TAIL_LIMIT = 64 * 1024
+
+
+def _current(db: DB, submission_id: int, attempt: int) -> Submission:
+    submission = db.get(Submission, submission_id, populate_existing=True)
+    if submission is None:
+        raise NotFound(f"no submission {submission_id}")
+    if submission.attempt != attempt:
+        raise Conflict(
+            f"attempt {attempt} of submission {submission_id} is stale "
+            f"(current attempt: {submission.attempt})"
+        )
+    return submission
+
+
+def report_state(db: DB, submission_id: int, attempt: int, state: State, reason: str) -> bool:
+    """A non-final state change (launching, running). False when it no longer applies."""
+    if state.final:
+        raise Invalid("final states are reported with their results (report_final)")
+    submission = _current(db, submission_id, attempt)
+    if submission.state == state:
+        return True
+    return transition(db, submission_id, attempt, state, reason)
+
+
+def report_progress(db: DB, submission_id: int, attempt: int, progress: dict[str, Any]) -> bool:
+    """Heartbeat and progress of a running attempt; False if it is not running any more."""
+    now = utcnow()
+    result = db.execute(
+        update(Submission)
+        .where(
+            Submission.id == submission_id,
+            Submission.attempt == attempt,
+            Submission.state.in_([State.LAUNCHING, State.RUNNING]),
+        )
+        .values(heartbeat_at=now, progress=progress, updated_at=now)
+        .execution_options(synchronize_session=False)
+    )
+    return bool(result.rowcount == 1)  # type: ignore[attr-defined]
+
+
+def report_final(
+    db: DB,
+    submission_id: int,
+    attempt: int,
+    state: State,
+    reason: str,
+    *,
+    result: EvaluationResult | None = None,
+    log_tail: str = "",
+) -> bool:
+    """End an attempt. True when this call (or an identical earlier one) ended it so."""
+    if not state.final:
+        raise Invalid(f"{state.value} is not a final state")
+    if state == State.SUCCEEDED and result is None:
+        raise Invalid("a succeeded submission needs its result document")
+    submission = _current(db, submission_id, attempt)
+    if submission.state.final:
+        # Idempotent repeat of the same report; any other final state already won.
+        return submission.state == state
+    values: dict[str, Any] = {"log_tail": log_tail[-LOG_TAIL_LIMIT:]}
+    if result is not None:
+        _store_results(db, submission, result)
+        values["result"] = result.model_dump(mode="json")
+        if state == State.SUCCEEDED:
+            values["score"] = result.score
+    if not transition(db, submission_id, attempt, state, reason, **values):
+        return False
+    db.refresh(submission)
+    if state == State.SUCCEEDED:
+        refresh(db, phase_id=submission.phase_id, user_id=submission.user_id)
+    return True
+
+
+def _store_results(db: DB, submission: Submission, result: EvaluationResult) -> None:
+    db.execute(
+        delete(TaskResultRow).where(
+            TaskResultRow.submission_id == submission.id,
+            TaskResultRow.attempt == submission.attempt,
+        )
+    )
+    for condition in result.conditions:
+        for task in condition.tasks:
+            row = TaskResultRow(
+                submission_id=submission.id,
+                attempt=submission.attempt,
+                condition=condition.name,
+                env_id=task.env_id,
+                episodes=task.episodes_planned,
+                successes=task.successes,
+                success_rate=task.success_rate,
+                ci_low=task.ci_low,
+                ci_high=task.ci_high,
+                mean_steps=task.mean_steps,
+            )
+            db.add(row)
+            db.flush()
+            db.add_all(
+                EpisodeResultRow(
+                    task_result_id=row.id,
+                    index=episode.index,
+                    seed=episode.seed,
+                    success_once=episode.success_once,
+                    success_at_end=episode.success_at_end,
+                    steps=episode.steps,
+                    episode_return=episode.episode_return,
+                    wall_time_s=episode.wall_time_s,
+                    invalid_actions=episode.invalid_actions,
+                    clipped_actions=episode.clipped_actions,
+                    failure=episode.failure_reason,
+                )
+                for episode in task.episodes
+            )
+    db.flush()
+
+
+def current_state(db: DB, *, submission_id: int) -> State:
+    """The submission's state as the database has it now (what a report's answer carries)."""
+    submission = db.get(Submission, submission_id, populate_existing=True)
+    if submission is None:
+        raise NotFound(f"no submission {submission_id}")
+    return submission.state

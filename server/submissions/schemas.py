@@ -1,0 +1,117 @@
+"""Request and response bodies of the submissions API, and the reports of the internal
+(worker) API."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from pydantic import BaseModel, Field
+
+from server.kit.schemas import InBody
+from server.models import State
+
+
+class SubmitIn(InBody):
+    challenge: str = Field(max_length=64)
+    phase: str = Field(default="dev", max_length=32)
+    image: str = Field(max_length=512)
+    description: str = Field(default="", max_length=2000)
+    public: bool = True
+
+
+class SubmissionPatch(InBody):
+    public: bool | None = None
+    hidden: bool | None = Field(default=None, description="admins only")
+    baseline: bool | None = Field(default=None, description="admins only")
+    description: str | None = Field(default=None, max_length=2000)
+
+
+class TransitionOut(BaseModel):
+    attempt: int
+    from_state: State | None
+    to_state: State
+    reason: str
+    at: datetime
+
+
+class TaskResultOut(BaseModel):
+    condition: str
+    env_id: str
+    episodes: int
+    successes: int
+    success_rate: float
+    ci_low: float
+    ci_high: float
+    mean_steps: float
+
+
+class SubmissionOut(BaseModel):
+    id: int
+    username: str
+    challenge: str
+    phase: str
+    image: str
+    pinned_image: str
+    description: str
+    public: bool
+    hidden: bool
+    baseline: bool
+    state: State
+    reason: str
+    attempt: int
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    score: float | None
+    progress: dict[str, object] | None
+
+
+class SubmissionDetail(SubmissionOut):
+    transitions: list[TransitionOut]
+    tasks: list[TaskResultOut]
+    conditions: dict[str, float]
+
+
+class EpisodeOut(BaseModel):
+    condition: str
+    env_id: str
+    index: int
+    seed: int | None = Field(description="null in phases whose seeds are secret")
+    success_once: bool
+    success_at_end: bool
+    steps: int
+    episode_return: float
+    wall_time_s: float
+    invalid_actions: int
+    clipped_actions: int
+    failure: str | None
+
+
+class LogsOut(BaseModel):
+    submission_id: int
+    attempt: int
+    log_tail: str
+
+
+# Internal (worker) API ------------------------------------------------------------------------
+
+
+class StateReport(InBody):
+    state: State
+    reason: str = Field(max_length=2000)
+
+
+class ProgressReport(InBody):
+    progress: dict[str, int | float | str]
+
+
+class FinalReport(InBody):
+    state: State
+    reason: str = Field(max_length=2000)
+    result: dict[str, object] | None = None
+    log_tail: str = Field(default="", max_length=1 << 20)
+
+
+class ReportOut(BaseModel):
+    applied: bool
+    state: State

@@ -1,0 +1,369 @@
+"""Submissions: accept, quota, who may see what, cancel, re-run and edit; and the reads the
+API and the pages show (lists, timelines, results).
+
+State changes go through :mod:`server.submissions.states`; work for the queue is written to the
+``outbox`` in the same transaction and sent after the commit (:mod:`server.submissions.outbox`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session as DB
+
+from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, QuotaExceeded
+from server.leaderboard.service import refresh
+from server.models import (
+    ACTIVE_STATES,
+    FINAL_STATES,
+    Challenge,
+    EpisodeResultRow,
+    Outbox,
+    Phase,
+    State,
+    Submission,
+    TaskResultRow,
+    Transition,
+    User,
+    utcnow,
+)
+from server.submissions.states import new_attempt, transition
+
+# A submission reserves quota from the moment it is accepted; if it ends in `error` (our
+# fault) or `cancelled` the reservation is released. Running and policy-caused endings count.
+QUOTA_HOLDING = frozenset(
+    {State.QUEUED, State.LAUNCHING, State.RUNNING, State.SUCCEEDED, State.FAILED, State.TIMED_OUT}
+)
+DAY = timedelta(days=1)
+LOCAL_PREFIX = "local:"
+
+
+@dataclass(frozen=True)
+class Resolved:
+    """What the image resolver returns: the reference to run, pinned, and its size."""
+
+    pinned: str
+    size_bytes: int | None
+
+
+Resolver = Callable[[str], Resolved]
+
+
+def submit(
+    db: DB,
+    *,
+    user: User,
+    challenge: Challenge,
+    phase: Phase,
+    image: str,
+    description: str,
+    public: bool,
+    resolve: Resolver,
+    now: datetime | None = None,
+) -> Submission:
+    """Accept a submission (state `queued`) or raise; the caller commits, then dispatches."""
+    now = now or utcnow()
+    if len(description) > 2000:
+        raise Invalid("description too long", fields={"description": "at most 2000 characters"})
+    if not phase.is_open(now):
+        when = phase.opens_at if phase.opens_at and now < phase.opens_at else phase.closes_at
+        verb = "opens" if phase.opens_at and now < phase.opens_at else "closed"
+        raise Conflict(
+            f"phase {phase.name!r} of {challenge.slug!r} {verb} at {when:%Y-%m-%d %H:%M} UTC",
+            fields={"phase": f"not open for submissions ({verb})"},
+        )
+    # Resolve before taking the lock: it talks to the registry.
+    resolved = resolve(image)
+
+    # Serialise this user's submissions so that two concurrent ones cannot both pass the quota.
+    db.execute(select(User.id).where(User.id == user.id).with_for_update())
+    check_quota(db, user=user, challenge=challenge, now=now)
+
+    submission = Submission(
+        user_id=user.id,
+        challenge_id=challenge.id,
+        phase_id=phase.id,
+        image=image,
+        pinned_image=resolved.pinned,
+        image_bytes=resolved.size_bytes,
+        description=description,
+        public=public,
+        state=State.QUEUED,
+        reason="waiting for a worker",
+        attempt=1,
+        created_at=now,
+        updated_at=now,
+    )
+    db.add(submission)
+    db.flush()
+    db.add(
+        Transition(
+            submission_id=submission.id,
+            attempt=1,
+            from_state=None,
+            to_state=State.QUEUED,
+            reason="submitted",
+            at=now,
+        )
+    )
+    db.add(Outbox(submission_id=submission.id, attempt=1, created_at=now))
+    db.flush()
+    return submission
+
+
+@dataclass(frozen=True)
+class QuotaUse:
+    per_day_used: int
+    per_day_limit: int
+    concurrent_used: int
+    concurrent_limit: int
+    resets_at: datetime | None
+
+
+def quota_use(db: DB, *, user: User, challenge: Challenge, now: datetime) -> QuotaUse:
+    """How much of the challenge's daily and concurrent quota the user holds now."""
+    base = select(Submission.created_at).where(
+        Submission.user_id == user.id, Submission.challenge_id == challenge.id
+    )
+    day = db.scalars(
+        base.where(Submission.created_at > now - DAY, Submission.state.in_(QUOTA_HOLDING)).order_by(
+            Submission.created_at
+        )
+    ).all()
+    active = db.scalar(
+        select(func.count())
+        .select_from(Submission)
+        .where(
+            Submission.user_id == user.id,
+            Submission.challenge_id == challenge.id,
+            Submission.state.in_(ACTIVE_STATES),
+        )
+    )
+    resets_at = day[0] + DAY if len(day) >= challenge.quota_per_day else None
+    return QuotaUse(
+        per_day_used=len(day),
+        per_day_limit=challenge.quota_per_day,
+        concurrent_used=active or 0,
+        concurrent_limit=challenge.quota_concurrent,
+        resets_at=resets_at,
+    )
+
+
+def check_quota(db: DB, *, user: User, challenge: Challenge, now: datetime) -> None:
+    """Raise QuotaExceeded (with when to try again) if the user may not submit now."""
+    use = quota_use(db, user=user, challenge=challenge, now=now)
+    if use.resets_at is not None:
+        raise QuotaExceeded(
+            f"daily quota of {use.per_day_limit} submissions to {challenge.slug!r} used; "
+            f"the next one is possible at {use.resets_at:%Y-%m-%d %H:%M:%S} UTC",
+            retry_after=(use.resets_at - now).total_seconds(),
+            resets_at=use.resets_at.isoformat(),
+        )
+    if use.concurrent_used >= use.concurrent_limit:
+        raise QuotaExceeded(
+            f"{use.concurrent_used} of your submissions to {challenge.slug!r} are still "
+            f"queued or running (limit {use.concurrent_limit}); wait for one to finish",
+            retry_after=60,
+            resets_at=None,
+        )
+
+
+def visible_to(submission: Submission, user: User | None) -> bool:
+    """Whether `user` may see this submission at all (others get 404, not 403)."""
+    if user is not None and (user.is_admin or user.id == submission.user_id):
+        return True
+    return submission.public and not submission.hidden
+
+
+def owned_or_admin(submission: Submission, user: User | None) -> bool:
+    """Whether `user` may see the private parts (episodes, log, videos) and act on it."""
+    return user is not None and (user.is_admin or user.id == submission.user_id)
+
+
+def find_visible(db: DB, *, submission_id: int, user: User | None) -> Submission | None:
+    """The submission if `user` may see it, else None."""
+    submission = db.get(Submission, submission_id)
+    if submission is None or not visible_to(submission, user):
+        return None
+    return submission
+
+
+def get_visible(db: DB, *, submission_id: int, user: User | None) -> Submission:
+    """The submission if `user` may see it, else NotFound (never Forbidden: no probing)."""
+    submission = find_visible(db, submission_id=submission_id, user=user)
+    if submission is None:
+        raise NotFound(f"no submission {submission_id}")
+    return submission
+
+
+def get_owned(db: DB, *, submission_id: int, user: User | None) -> Submission:
+    """The submission if `user` owns it or is an admin, else NotFound."""
+    submission = db.get(Submission, submission_id)
+    if submission is None or not owned_or_admin(submission, user):
+        raise NotFound(f"no submission {submission_id}")
+    return submission
+
+
+def cancel(db: DB, user: User, submission: Submission, *, now: datetime | None = None) -> None:
+    """Cancel by the owner (or an admin): the worker sees the state and stops the run."""
+    if not owned_or_admin(submission, user):
+        raise NotFound(f"no submission {submission.id}")
+    if submission.state in FINAL_STATES:
+        raise Conflict(f"submission {submission.id} already ended ({submission.state.value})")
+    who = "an admin" if user.id != submission.user_id else "its owner"
+    if not transition(
+        db, submission.id, submission.attempt, State.CANCELLED, f"cancelled by {who}", now=now
+    ):
+        db.refresh(submission)
+        raise Conflict(f"submission {submission.id} already ended ({submission.state.value})")
+    db.refresh(submission)
+
+
+def edit(
+    db: DB,
+    *,
+    user: User,
+    submission: Submission,
+    public: bool | None = None,
+    hidden: bool | None = None,
+    baseline: bool | None = None,
+    description: str | None = None,
+) -> None:
+    """The owner changes visibility and description; admins also hide and flag baselines.
+    The phase's leaderboard is recomputed for the submission's owner."""
+    if not owned_or_admin(submission, user):
+        raise NotFound(f"no submission {submission.id}")
+    if (hidden is not None or baseline is not None) and not user.is_admin:
+        raise Forbidden("only admins can hide submissions or flag baselines")
+    changes: dict[str, bool | str | None] = {
+        "public": public,
+        "hidden": hidden,
+        "baseline": baseline,
+        "description": description,
+    }
+    for name, value in changes.items():
+        if value is not None:
+            setattr(submission, name, value)
+    db.flush()
+    refresh(db, phase_id=submission.phase_id, user_id=submission.user_id)
+
+
+def rerun(db: DB, *, admin: User, submission: Submission, now: datetime | None = None) -> None:
+    """An admin runs an ended submission again, as a new attempt with its own results."""
+    if not admin.is_admin:
+        raise Forbidden("only admins can re-run submissions")
+    if not new_attempt(db, submission, "re-run by an admin", now=now):
+        raise Conflict(f"submission {submission.id} has not ended; cancel it first")
+
+
+# Reads ----------------------------------------------------------------------------------------
+
+
+def list_submissions(
+    db: DB,
+    *,
+    page: int,
+    per_page: int,
+    user: User | None = None,
+    challenge: Challenge | None = None,
+    state: State | None = None,
+) -> tuple[list[Submission], int]:
+    """One page of submissions, newest first (a user's, a challenge's, in a state), and how
+    many match."""
+    query = select(Submission)
+    if user is not None:
+        query = query.where(Submission.user_id == user.id)
+    if challenge is not None:
+        query = query.where(Submission.challenge_id == challenge.id)
+    if state is not None:
+        query = query.where(Submission.state == state)
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = db.scalars(
+        query.order_by(Submission.created_at.desc(), Submission.id.desc())
+        .offset((page - 1) * per_page)
+        .limit(per_page)
+    ).all()
+    return list(rows), total
+
+
+def transitions_of(db: DB, *, submission_id: int, after: int = 0) -> list[Transition]:
+    """The submission's state changes after transition id `after`, in order."""
+    return list(
+        db.scalars(
+            select(Transition)
+            .where(Transition.submission_id == submission_id, Transition.id > after)
+            .order_by(Transition.id)
+        )
+    )
+
+
+def task_rows(db: DB, *, submission: Submission) -> list[TaskResultRow]:
+    """The current attempt's per-task results, in the order the evaluator reported them."""
+    return list(
+        db.scalars(
+            select(TaskResultRow)
+            .where(
+                TaskResultRow.submission_id == submission.id,
+                TaskResultRow.attempt == submission.attempt,
+            )
+            .order_by(TaskResultRow.id)
+        )
+    )
+
+
+def condition_means(rows: list[TaskResultRow]) -> dict[str, float]:
+    """Each condition's mean success rate over its tasks."""
+    by_condition: dict[str, list[float]] = {}
+    for row in rows:
+        by_condition.setdefault(row.condition, []).append(row.success_rate)
+    return {name: sum(rates) / len(rates) for name, rates in by_condition.items()}
+
+
+def episode_rows(
+    db: DB, *, submission: Submission, page: int, per_page: int
+) -> tuple[list[tuple[EpisodeResultRow, str, str]], int]:
+    """One page of the current attempt's episodes as (row, condition, task), and their total."""
+    query = (
+        select(EpisodeResultRow, TaskResultRow.condition, TaskResultRow.env_id)
+        .join(TaskResultRow, EpisodeResultRow.task_result_id == TaskResultRow.id)
+        .where(
+            TaskResultRow.submission_id == submission.id,
+            TaskResultRow.attempt == submission.attempt,
+        )
+    )
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = db.execute(
+        query.order_by(TaskResultRow.id, EpisodeResultRow.index)
+        .offset((page - 1) * per_page)
+        .limit(per_page)
+    ).all()
+    return [(row, condition, env_id) for row, condition, env_id in rows], total
+
+
+# The embedded server's restart ----------------------------------------------------------------
+
+
+def end_interrupted(db: DB) -> list[tuple[int, int]]:
+    """After a restart of the embedded server: runs it had in flight died with it (ended
+    `error`, which burns no quota, so the owner may resubmit). Returns the queued attempts,
+    oldest first, to send to the queue again."""
+    running = db.scalars(
+        select(Submission).where(Submission.state.in_([State.LAUNCHING, State.RUNNING]))
+    ).all()
+    for s in running:
+        transition(
+            db,
+            s.id,
+            s.attempt,
+            State.ERROR,
+            "the server stopped during the evaluation; submit again or ask for a re-run",
+        )
+    pending = db.execute(
+        select(Submission.id, Submission.attempt)
+        .where(Submission.state == State.QUEUED)
+        .order_by(Submission.id)
+    ).all()
+    return [(sid, attempt) for sid, attempt in pending]

@@ -1,0 +1,165 @@
+"""The submit form, "my submissions", and the administrators' list of every submission."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated
+
+from fastapi import APIRouter, Form, Query, Request
+from fastapi.responses import Response
+from sqlalchemy.orm import Session as DB
+
+from server.challenges.service import get_challenge, get_phase
+from server.kit.deps import DBDep, limit, services
+from server.kit.errors import AppError, Forbidden, Invalid
+from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
+from server.models import Challenge, State, User, utcnow
+from server.submissions.service import list_submissions, quota_use, submit
+
+router = APIRouter(include_in_schema=False)
+
+MAX_IMAGE_LENGTH = 512  # as the API's SubmitIn
+PER_PAGE = 50
+PageNo = Annotated[int, Query(ge=1, le=100_000)]
+
+
+def _form(
+    request: Request,
+    who: Viewer,
+    db: DB,
+    challenge: Challenge,
+    *,
+    form: dict[str, str],
+    error: AppError | None = None,
+) -> Response:
+    user = signed_in(request, who)
+    resets_at = None
+    if error is not None and isinstance(stamp := error.extra.get("resets_at"), str):
+        resets_at = datetime.fromisoformat(stamp)
+    response = render(
+        request,
+        who,
+        "submit.html",
+        status=error.status if error is not None else 200,
+        challenge=challenge,
+        now=utcnow(),
+        quota=quota_use(db, user=user, challenge=challenge, now=utcnow()),
+        form=form,
+        errors=error.fields if error is not None else {},
+        message=error.message if error is not None else "",
+        resets_at=resets_at,
+        local_policies=services(request).settings.allow_local_policies,
+    )
+    if error is not None:
+        response.headers.update(error.headers())
+    return response
+
+
+@router.get("/challenges/{slug}/submit")
+def submit_form(
+    slug: str,
+    request: Request,
+    who: ViewerDep,
+    db: DBDep,
+    phase: Annotated[str, Query(max_length=32)] = "",
+) -> Response:
+    signed_in(request, who)
+    challenge = get_challenge(db, slug=slug)
+    default = {"phase": phase, "image": "", "description": "", "visibility": "public"}
+    return _form(request, who, db, challenge, form=default)
+
+
+FormText = Annotated[str, Form(max_length=4000)]
+
+
+@router.post("/challenges/{slug}/submit")
+def submit_post(
+    slug: str,
+    request: Request,
+    who: PostedDep,
+    db: DBDep,
+    phase: FormText = "",
+    image: FormText = "",
+    description: FormText = "",
+    visibility: FormText = "public",
+) -> Response:
+    """Accept the submission and go to its page, or show the server's errors by the fields."""
+    user = signed_in(request, who)
+    challenge = get_challenge(db, slug=slug)
+    image = image.strip()
+    form = {"phase": phase, "image": image, "description": description, "visibility": visibility}
+    svc = services(request)
+    try:
+        limit(request, "submit", user=user)
+        if not image:
+            raise Invalid("enter an image reference", fields={"image": "Enter an image reference."})
+        if len(image) > MAX_IMAGE_LENGTH:
+            raise Invalid(
+                "image reference too long",
+                fields={"image": f"At most {MAX_IMAGE_LENGTH} characters."},
+            )
+        submission = submit(
+            db,
+            user=user,
+            challenge=challenge,
+            phase=get_phase(challenge, phase),
+            image=image,
+            description=description,
+            public=visibility != "private",
+            resolve=svc.resolve,
+        )
+        db.commit()
+    except AppError as exc:
+        db.rollback()
+        return _form(request, who, db, challenge, form=form, error=exc)
+    svc.dispatcher.dispatch()  # after the commit; the periodic sweep retries if this fails
+    return redirect(f"/submissions/{submission.id}")
+
+
+@router.get("/submissions")
+def my_submissions(request: Request, who: ViewerDep, db: DBDep, page: PageNo = 1) -> Response:
+    """The viewer's submissions, newest first."""
+    user = signed_in(request, who)
+    rows, total = list_submissions(db, user=user, page=page, per_page=PER_PAGE)
+    return render(
+        request,
+        who,
+        "submissions.html",
+        title="My submissions",
+        rows=rows,
+        total=total,
+        page=page,
+        pages=max(1, -(-total // PER_PAGE)),
+        state="",
+        states=[],
+        show_owner=False,
+    )
+
+
+@router.get("/admin/submissions")
+def all_submissions(
+    request: Request,
+    who: ViewerDep,
+    db: DBDep,
+    page: PageNo = 1,
+    state: Annotated[str, Query(max_length=16)] = "",
+) -> Response:
+    """Every submission, for administrators: where re-run, hide and baseline are one click."""
+    user: User = signed_in(request, who)
+    if not user.is_admin:
+        raise Forbidden("admins only")
+    shown = State(state) if state in {s.value for s in State} else None
+    rows, total = list_submissions(db, state=shown, page=page, per_page=PER_PAGE)
+    return render(
+        request,
+        who,
+        "submissions.html",
+        title="All submissions",
+        rows=rows,
+        total=total,
+        page=page,
+        pages=max(1, -(-total // PER_PAGE)),
+        state=shown.value if shown is not None else "",
+        states=[s.value for s in State],
+        show_owner=True,
+    )

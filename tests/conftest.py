@@ -1,0 +1,139 @@
+"""Fixtures every test folder shares: each database test runs on SQLite and on this machine's
+Postgres, and `client` is the app on that database.
+
+Each test runs inside a transaction that is rolled back afterwards (the app's own commits
+become savepoints), so tests are independent and fast. Tests that need real concurrent
+connections use `committed_sessions`, which truncates after the test instead. Plain helpers
+(users, challenges, submissions, result documents) are in `tests/factories.py`.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import Engine, create_engine, text
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.app import create_app
+from server.kit.db import make_engine, upgrade
+from server.kit.ratelimit import MemoryRateLimiter
+from server.kit.settings import Settings
+from server.models import Base
+from tests.factories import RecordingQueue, fake_resolve_for
+
+PG_ADMIN_URL = os.environ.get(
+    "MANIEVAL_TEST_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
+)
+
+
+def _require(what: str, exc: Exception) -> None:
+    message = f"{what} is not reachable: {exc}"
+    if os.environ.get("CI") == "true":
+        pytest.fail(message)
+    pytest.skip(message)
+
+
+@pytest.fixture(scope="session")
+def postgres_url() -> Iterator[str]:
+    """A fresh, migrated database on the local Postgres, dropped after the session."""
+    name = f"manieval_test_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as conn:
+            conn.execute(text(f'CREATE DATABASE "{name}"'))
+    except Exception as exc:
+        _require("Postgres", exc)
+    url = PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
+    try:
+        yield url
+    finally:
+        with admin.connect() as conn:
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+
+
+@pytest.fixture(scope="session")
+def sqlite_url(tmp_path_factory: pytest.TempPathFactory) -> str:
+    return f"sqlite:///{tmp_path_factory.mktemp('db') / 'manieval.db'}"
+
+
+@pytest.fixture(scope="session", params=["sqlite", "postgres"])
+def engine(request: pytest.FixtureRequest) -> Iterator[Engine]:
+    url = request.getfixturevalue(f"{request.param}_url")
+    upgrade(url)
+    eng = make_engine(url)
+    yield eng
+    eng.dispose()
+
+
+@pytest.fixture
+def sessions(engine: Engine) -> Iterator[sessionmaker[Session]]:
+    """Sessions inside one outer transaction, rolled back after the test."""
+    connection = engine.connect()
+    outer = connection.begin()
+    try:
+        yield sessionmaker(
+            bind=connection, join_transaction_mode="create_savepoint", expire_on_commit=False
+        )
+    finally:
+        outer.rollback()
+        connection.close()
+
+
+@pytest.fixture
+def committed_sessions(engine: Engine) -> Iterator[sessionmaker[Session]]:
+    """Real commits on separate connections (for races); every table is emptied after."""
+    yield sessionmaker(engine, expire_on_commit=False)
+    with engine.begin() as conn:
+        for table in reversed(Base.metadata.sorted_tables):
+            conn.execute(table.delete())
+
+
+@pytest.fixture
+def db(sessions: sessionmaker[Session]) -> Iterator[Session]:
+    with sessions() as session:
+        yield session
+
+
+# The app ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def settings(tmp_path: Path) -> Settings:
+    return Settings(
+        dev_mode=True,
+        data_dir=tmp_path,
+        cookie_secure=False,
+        allow_local_policies=True,
+        register_rate="1000/minute",
+        login_rate="1000/minute",
+        token_rate="1000/minute",
+        submit_rate="1000/minute",
+        leaderboard_max_age=0,  # tests read their writes at once
+    )
+
+
+@pytest.fixture
+def work() -> RecordingQueue:
+    return RecordingQueue()
+
+
+@pytest.fixture
+def client(
+    settings: Settings, sessions: sessionmaker[Session], work: RecordingQueue
+) -> Iterator[TestClient]:
+    app = create_app(
+        settings,
+        sessions=sessions,
+        work=work,
+        resolve=fake_resolve_for(settings),
+        limiter=MemoryRateLimiter(),
+        background=False,
+    )
+    with TestClient(app, base_url="http://testserver") as c:
+        yield c

@@ -1,0 +1,157 @@
+"""Plain helpers for tests of the server, the web pages, the worker and the CLI: users,
+challenges, submissions and result documents through the real code paths, a queue that records,
+a registry stand-in, and API tokens."""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session, sessionmaker
+
+from evaluator.results import (
+    ConditionResult,
+    EpisodeResult,
+    EvaluationResult,
+    SuiteRef,
+    Versions,
+    aggregate_task,
+)
+from server.accounts import service as accounts
+from server.challenges.service import ChallengeOptions, load_challenge
+from server.kit.db import make_engine, session_factory, upgrade
+from server.kit.settings import Settings
+from server.models import Challenge, Submission, User
+from server.submissions.image_refs import ImageReference, ResolvedImage
+from server.submissions.images import image_resolver
+from server.submissions.service import Resolved, Resolver, submit
+
+SUITE = Path(__file__).resolve().parent / "server" / "server_suite.yaml"
+PASSWORD = "correct horse battery staple"
+
+
+def make_user(db: Session, username: str, *, admin: bool = False) -> User:
+    user = accounts.register(
+        db, username=username, email=f"{username}@example.org", password=PASSWORD, admin=admin
+    )
+    db.commit()
+    return user
+
+
+def make_challenge(db: Session, **options: object) -> Challenge:
+    challenge = load_challenge(
+        db,
+        SUITE,
+        ChallengeOptions(**options),
+        seed_secret="s" * 32,  # type: ignore[arg-type]
+    )
+    db.commit()
+    return challenge
+
+
+def embedded_database(settings: Settings, **options: object) -> sessionmaker[Session]:
+    """A migrated database for `settings` with two challenges: `server-tiny`, and
+    `server-long` (200 episodes of 100 steps: long enough to cancel or kill a run mid-way)."""
+    upgrade(settings.resolved_database_url)
+    sessions = session_factory(make_engine(settings.resolved_database_url))
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    long_suite = settings.data_dir / "server-long.yaml"
+    long_suite.write_text(
+        SUITE.read_text()
+        .replace("name: server-tiny", "name: server-long")
+        .replace("max_episode_steps: 12, episodes: 2", "max_episode_steps: 100, episodes: 200")
+    )
+    with sessions.begin() as db:
+        for suite in (SUITE, long_suite):
+            load_challenge(
+                db,
+                suite,
+                ChallengeOptions(**options),  # type: ignore[arg-type]
+                seed_secret=settings.secret("seed_secret"),
+            )
+    return sessions
+
+
+def queue_submission(
+    db: Session, user: User, challenge: Challenge, phase: str = "dev"
+) -> Submission:
+    """A queued submission through the real submit path, with a stand-in pinned image."""
+    target = next(p for p in challenge.phases if p.name == phase)
+    return submit(
+        db,
+        user=user,
+        challenge=challenge,
+        phase=target,
+        image="x",
+        description="",
+        public=True,
+        resolve=lambda _image: Resolved(pinned="x@sha256:" + "0" * 64, size_bytes=1),
+    )
+
+
+def result_doc(
+    successes: list[bool], *, phase: str = "dev", conditions: tuple[str, ...] = ("nominal",)
+) -> EvaluationResult:
+    """A completed result of PickCube-v1 on the server-tiny suite: these episode outcomes,
+    the same task under every condition."""
+    episodes = [
+        EpisodeResult(
+            index=i,
+            seed=1000 + i,
+            success_once=ok,
+            success_at_end=ok,
+            steps=10,
+            episode_return=1.0,
+            wall_time_s=0.1,
+        )
+        for i, ok in enumerate(successes)
+    ]
+    task = aggregate_task("PickCube-v1", len(episodes), episodes)
+    now = datetime.now(UTC)
+    return EvaluationResult(
+        suite=SuiteRef(name="server-tiny", version=1, sha256="0" * 64),
+        phase=phase,
+        policy="test",
+        versions=Versions(manieval="0", mani_skill="0", sapien="0", torch="0", python="3"),
+        started_at=now,
+        finished_at=now,
+        status="completed",
+        score=task.success_rate,
+        conditions=[
+            ConditionResult(name=name, params={"kind": name}, score=task.success_rate, tasks=[task])
+            for name in conditions
+        ],
+    )
+
+
+@dataclass
+class RecordingQueue:
+    sent: list[tuple[int, int]] = field(default_factory=list)
+
+    def enqueue(self, submission_id: int, attempt: int) -> None:
+        self.sent.append((submission_id, attempt))
+
+
+class FakeRegistry:
+    """Stands in for the registry where a test is not about it (the real one is tested in
+    test_images.py and test_submit_registry.py); reference parsing is the real one."""
+
+    def resolve(self, ref: ImageReference, *, max_bytes: int) -> ResolvedImage:
+        digest = "sha256:" + uuid.uuid5(uuid.NAMESPACE_URL, str(ref)).hex * 2
+        return ResolvedImage(
+            reference=ref, digest=digest, size_bytes=1234, pinned=ref.pinned(digest)
+        )
+
+
+def fake_resolve_for(settings: Settings) -> Resolver:
+    return image_resolver(settings, FakeRegistry())
+
+
+def token_for(client: TestClient, username: str) -> dict[str, str]:
+    """Log in by password and return Authorization headers with a fresh API token."""
+    r = client.post("/api/v1/auth/token", json={"login": username, "password": PASSWORD})
+    assert r.status_code == 201, r.text
+    return {"Authorization": f"Bearer {r.json()['token']}"}
