@@ -2,22 +2,33 @@
 
 A source launches the policy as a separate process that connects to the evaluator's endpoint.
 `LocalDirectory` runs `policy.py` from a directory with this machine's Python (development and
-the demo); container images come with the worker's executors.
+the demo), in a bubblewrap sandbox when bubblewrap is installed (evaluator/sandbox.py); container
+images come with the worker's executors.
 """
 
 from __future__ import annotations
 
+import functools
+import logging
 import os
 import signal
 import subprocess
 import sys
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Protocol
+from typing import IO, Protocol, runtime_checkable
+
+from evaluator import sandbox
+from evaluator.results import FailureKind
+from evaluator.sandbox import Sandbox, SandboxLimits
+
+log = logging.getLogger(__name__)
 
 LOG_TAIL_BYTES = 64 * 1024
 POLICY_ENTRYPOINT = "policy.py"
+MAX_SIGNAL = 64
+STOP_GRACE_S = 1.0  # a sandboxed policy told to close normally exits well within this
 
 
 class PolicySourceError(ValueError):
@@ -38,6 +49,18 @@ class PolicyProcess(Protocol):
         ...
 
     def stop(self) -> None: ...
+
+
+@runtime_checkable
+class ConfinedProcess(Protocol):
+    """A policy process whose launcher enforces resource limits and says which one it hit."""
+
+    def limit_reached(self) -> FailureKind | None: ...
+
+
+def limit_reached(process: PolicyProcess) -> FailureKind | None:
+    """After stop(): the resource limit that ended the policy, when its launcher knows one."""
+    return process.limit_reached() if isinstance(process, ConfinedProcess) else None
 
 
 class PolicySource(Protocol):
@@ -82,10 +105,13 @@ class LogTail:
 
 
 class LocalProcess:
-    """A policy subprocess in its own process group, so stopping it stops its children too."""
+    """A policy subprocess in its own process group, so stopping it stops its children too; in
+    a sandbox, the sandbox's PID namespace holds every descendant and dies with it."""
 
-    def __init__(self, popen: subprocess.Popen[bytes]) -> None:
+    def __init__(self, popen: subprocess.Popen[bytes], *, sandbox: Sandbox | None = None) -> None:
         self._popen = popen
+        self._sandbox = sandbox
+        self._ended: str | None = None
         assert popen.stdout is not None
         self._log = LogTail(popen.stdout)
 
@@ -94,19 +120,30 @@ class LocalProcess:
         return self._popen.poll() is None
 
     def exit_code(self) -> int | None:
-        """The exit code, None while running."""
-        return self._popen.poll()
+        """The exit code, None while running; negative: killed by that signal."""
+        code = self._popen.poll()
+        if self._sandbox is not None and code is not None and 128 < code <= 128 + MAX_SIGNAL:
+            return 128 - code  # bubblewrap reports a signal N as the shell does, 128 + N
+        return code
 
     def log_tail(self) -> str:
         """The last bytes of the policy's stdout and stderr."""
         return self._log.text()
 
     def exit_detail(self) -> str | None:
-        """Nothing beyond the exit code."""
-        return None
+        """After stop(): the limit the sandbox reached, or how it exited by itself."""
+        breach = self._sandbox.watch.breach if self._sandbox is not None else None
+        return breach.detail if breach is not None else self._ended
+
+    def limit_reached(self) -> FailureKind | None:
+        """After stop(): the kind of the limit the sandbox reached, if it did."""
+        breach = self._sandbox.watch.breach if self._sandbox is not None else None
+        return breach.kind if breach is not None else None
 
     def stop(self) -> None:
         """Terminate the process group; kill it if it does not exit within a few seconds."""
+        if self._sandbox is not None:
+            self._stop_sandbox()
         for sig, wait in ((signal.SIGTERM, 3.0), (signal.SIGKILL, 5.0)):
             if self._popen.poll() is not None:
                 break
@@ -119,17 +156,38 @@ class LocalProcess:
             except subprocess.TimeoutExpired:
                 continue
         self._log.join(1.0)
+        if self._sandbox is not None:
+            self._sandbox.cleanup()
+
+    def _stop_sandbox(self) -> None:
+        assert self._sandbox is not None
+        if self._sandbox.watch.check() is None:  # a last look: a limit reached now still counts
+            # The policy was told to close, or has just died: its exit reaches us through
+            # bubblewrap's processes, a moment after the evaluator saw the connection end.
+            try:
+                self._popen.wait(STOP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                pass
+            else:
+                code = self.exit_code()
+                self._ended = None if code == 0 else f"exit code {code}"
+        self._sandbox.watch.kill()  # everything in it, wherever its descendants went
 
 
 @dataclass(frozen=True)
 class LocalDirectory:
-    """A policy directory with a `policy.py` that calls `manieval_sdk.serve` (trusted code only)."""
+    """A policy directory with a `policy.py` that calls `manieval_sdk.serve`, run in a sandbox
+    when bubblewrap is installed (unconfined otherwise: trusted code only)."""
 
     path: Path
+    limits: SandboxLimits = field(default_factory=SandboxLimits)
 
     def __post_init__(self) -> None:
         if not (self.path / POLICY_ENTRYPOINT).is_file():
             raise PolicySourceError(f"{self.path} has no {POLICY_ENTRYPOINT}")
+        problem = sandbox.unavailable()
+        if problem is not None:
+            warn_unconfined(problem)
 
     def describe(self) -> str:
         """How the result document names this policy."""
@@ -137,6 +195,18 @@ class LocalDirectory:
 
     def launch(self, *, endpoint: str, socket_dir: Path) -> LocalProcess:
         """Start `python policy.py` with a minimal environment (no secrets of ours leak in)."""
+        if sandbox.unavailable() is not None:
+            return self._launch_unconfined(endpoint=endpoint, socket_dir=socket_dir)
+        started = sandbox.start(
+            workdir=self.path,
+            entrypoint=POLICY_ENTRYPOINT,
+            socket_dir=socket_dir,
+            env=sandbox_env(endpoint),
+            limits=self.limits,
+        )
+        return LocalProcess(started.popen, sandbox=started)
+
+    def _launch_unconfined(self, *, endpoint: str, socket_dir: Path) -> LocalProcess:
         env = {
             "PATH": os.environ.get("PATH", "/usr/bin:/bin"),
             "HOME": str(socket_dir),
@@ -154,3 +224,23 @@ class LocalDirectory:
             start_new_session=True,
         )
         return LocalProcess(popen)
+
+
+@functools.cache
+def warn_unconfined(problem: str) -> None:
+    """Say once per process that local policies run without a sandbox, and why."""
+    log.warning(
+        "%s: the policy runs unconfined, as your user, with your files and network", problem
+    )
+
+
+def sandbox_env(endpoint: str) -> dict[str, str]:
+    """The whole environment of a sandboxed policy."""
+    return {
+        "PATH": f"{Path(sys.executable).parent}:/usr/local/bin:/usr/bin:/bin",
+        "HOME": "/tmp",
+        "LANG": "C.UTF-8",
+        "PYTHONUNBUFFERED": "1",
+        "PYTHONDONTWRITEBYTECODE": "1",  # its directory is read-only
+        "MANIEVAL_ENDPOINT": endpoint,
+    }

@@ -26,6 +26,11 @@ command -v podman >/dev/null || missing+=(podman)
 [ -x /usr/sbin/runc ] || missing+=(runc)
 command -v debootstrap >/dev/null || missing+=(debootstrap)
 command -v openssl >/dev/null || missing+=(openssl)  # signs the test registry's tokens
+# Local policies (`manieval evaluate --policy`, the demo's local: policies) run under bubblewrap;
+# as root the sandbox is entered through util-linux's unshare and setpriv, and mount.
+command -v bwrap >/dev/null || missing+=(bubblewrap)
+command -v setpriv >/dev/null || missing+=(util-linux)
+command -v mount >/dev/null || missing+=(mount)
 # Browser tests drive Debian's Chromium through Playwright (no browser download needed).
 [ -x /usr/bin/chromium ] || missing+=(chromium)
 # The deployment tests render the kustomize overlays with kubectl's embedded kustomize.
