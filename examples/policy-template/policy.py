@@ -27,6 +27,9 @@ class MyPolicy(Policy):
         # `obs` is what the task's obs_mode gives, without a batch dimension: for "state_dict"
         # a nested dict such as obs["extra"]["tcp_pose"] (shape (7,)). Return an array shaped
         # like self.spec.action_low; values outside [action_low, action_high] are clipped.
+        # Randomness: draw from self.rng, e.g. self.rng.normal(size=...). The SDK reseeds it
+        # from each episode's first observation, and seeds `random`, numpy's global generator
+        # and torch likewise, so an episode gets the same draws on every run and every worker.
         action = np.zeros(self.spec.action_shape, dtype=np.float32)
         action[-1] = 1.0  # keep the gripper open
         return action

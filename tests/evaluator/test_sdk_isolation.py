@@ -18,7 +18,8 @@ CYTHON_RUNTIME = re.compile(r"cython_runtime|_cython_\d+_\d+_\d+[a-z0-9]*")
 PROBE = """
 import json, sys
 before = set(sys.modules)
-import manieval_sdk, manieval_sdk.policy, manieval_sdk.serve, manieval_sdk.wire
+import manieval_sdk, manieval_sdk.policy, manieval_sdk.seeding, manieval_sdk.serve
+import manieval_sdk.wire
 loaded = {name.partition(".")[0] for name in set(sys.modules) - before}
 print(json.dumps(sorted(loaded - set(sys.stdlib_module_names))))
 """

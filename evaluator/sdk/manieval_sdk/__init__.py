@@ -4,6 +4,7 @@ Depends on numpy and msgpack only, so it fits in any policy image.
 """
 
 from manieval_sdk.policy import Observation, Policy, TaskSpec
+from manieval_sdk.seeding import episode_seed
 from manieval_sdk.serve import serve
 
-__all__ = ["Observation", "Policy", "TaskSpec", "serve"]
+__all__ = ["Observation", "Policy", "TaskSpec", "episode_seed", "serve"]

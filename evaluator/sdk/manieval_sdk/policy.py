@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -37,7 +37,19 @@ class Policy(ABC):
 
     The evaluator calls `setup` once per task, `reset` at the start of every episode and `act`
     once per control step. Observations carry no batch dimension.
+
+    Randomness is reproducible by default: before every `reset`, `serve` sets `self.rng` to a
+    generator seeded from the episode's first observation, and seeds Python's `random`, numpy's
+    global generator and torch (when the policy imported it) from the same seed; before every
+    `setup` it does the same from the task's spec. An episode then draws the same numbers
+    wherever and whenever it runs, whatever ran before it (see `manieval_sdk.seeding`).
     """
+
+    seed_globals: ClassVar[bool] = True
+    """False: leave Python's, numpy's and torch's global generators to the policy."""
+
+    rng: np.random.Generator
+    """This episode's random generator (this task's, in `setup`)."""
 
     def setup(self, spec: TaskSpec) -> None:
         """Called when a new task starts; `spec` describes its spaces and limits."""

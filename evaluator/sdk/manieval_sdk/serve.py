@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from manieval_sdk.policy import Policy, TaskSpec
+from manieval_sdk.seeding import episode_seed, reseed, task_seed
 from manieval_sdk.wire import (
     DEFAULT_MAX_FRAME_BYTES,
     PROTOCOL_VERSION,
@@ -75,9 +76,12 @@ def _handle(policy: Policy, message: dict[str, Any]) -> dict[str, Any] | None:
             "name": type(policy).__name__,
         }
     if kind == "task":
-        policy.setup(task_spec(message["spec"]))
+        spec = task_spec(message["spec"])
+        reseed(policy, task_seed(spec))
+        policy.setup(spec)
         return {"type": "ok"}
     if kind == "reset":
+        reseed(policy, episode_seed(message["obs"]))
         policy.reset(message["obs"], message.get("info", {}))
         return {"type": "ok"}
     if kind == "act":
