@@ -6,6 +6,7 @@ plain function call with everything else held equal; submissions always use `Rem
 
 from __future__ import annotations
 
+import time
 from typing import Any, Protocol
 
 import numpy as np
@@ -18,6 +19,11 @@ from manieval_sdk.serve import task_spec
 
 class PolicyChannel(Protocol):
     """The three calls the evaluator makes of a policy during a task."""
+
+    @property
+    def policy_time_s(self) -> float:
+        """Time the policy has taken so far answering `reset` and `act` (its budget's clock)."""
+        ...
 
     def start_task(self, spec: dict[str, Any]) -> None: ...
 
@@ -34,10 +40,19 @@ class RemoteChannel:
         self._limits = limits
         self._warm = False
 
+    @property
+    def policy_time_s(self) -> float:
+        """Time the policy has taken so far answering `reset` and `act`."""
+        return self._endpoint.policy_time_s
+
     def start_task(self, spec: dict[str, Any]) -> None:
-        """Send the task spec; the first act after it gets the generous timeout."""
+        """Send the task spec (set-up, not charged to the budget); the first act after it gets
+        the generous timeout."""
         self._endpoint.call(
-            {"type": "task", "spec": spec}, expect="ok", timeout=self._limits.first_call_timeout_s
+            {"type": "task", "spec": spec},
+            expect="ok",
+            timeout=self._limits.first_call_timeout_s,
+            charged=False,
         )
         self._warm = False
 
@@ -62,6 +77,7 @@ class InProcessChannel:
 
     def __init__(self, policy: Policy) -> None:
         self._policy = policy
+        self.policy_time_s = 0.0
 
     def start_task(self, spec: dict[str, Any]) -> None:
         """Set the policy up for a task."""
@@ -69,12 +85,19 @@ class InProcessChannel:
 
     def reset(self, obs: Any, info: dict[str, Any]) -> None:
         """Start an episode."""
-        self._guard(lambda: self._policy.reset(obs, info))
+        self._timed(lambda: self._policy.reset(obs, info))
 
     def act(self, obs: Any) -> Any:
         """One action."""
-        action = self._guard(lambda: self._policy.act(obs))
+        action = self._timed(lambda: self._policy.act(obs))
         return np.asarray(action)
+
+    def _timed(self, call: Any) -> Any:
+        started = time.monotonic()
+        try:
+            return self._guard(call)
+        finally:
+            self.policy_time_s += time.monotonic() - started
 
     @staticmethod
     def _guard(call: Any) -> Any:

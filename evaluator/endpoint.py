@@ -1,8 +1,12 @@
 """The evaluator's side of the policy protocol: a listening socket and typed calls with limits.
 
-Every receive has a deadline (the per-call timeout, bounded by the evaluation's budget), frames
-from the policy are size-capped, and every way the policy can misbehave surfaces as one of the
-exceptions below, never as a hang or a crash of the evaluator.
+Every receive has a deadline (the per-call timeout, cut short to what is left of the policy's
+time budget), frames from the policy are size-capped, and every way the policy can misbehave
+surfaces as one of the exceptions below, never as a hang or a crash of the evaluator.
+
+The budget counts only the time the evaluator waits for the policy's answers to `reset` and
+`act`: never the evaluator's own work (imports, building and stepping the simulator), nor the
+one-off set-up calls (`hello`, `task`), which their own timeouts bound.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from evaluator.results import FailureKind
+from evaluator.results import EpisodeResult, FailureKind
 from manieval_sdk.wire import (
     DEFAULT_MAX_FRAME_BYTES,
     PROTOCOL_VERSION,
@@ -30,12 +34,14 @@ SOCKET_NAME = "policy.sock"
 
 
 class PolicyFailure(Exception):
-    """The policy broke the evaluation: the kind and reason end up in the result document."""
+    """The policy broke the evaluation: the kind and reason end up in the result document,
+    with the record of the episode it broke, as far as it got, when it broke one."""
 
     def __init__(self, kind: FailureKind, reason: str) -> None:
         super().__init__(reason)
         self.kind: FailureKind = kind
         self.reason = reason
+        self.episode: EpisodeResult | None = None
 
 
 class PolicyRaised(Exception):
@@ -45,7 +51,13 @@ class PolicyRaised(Exception):
 class PolicyEndpoint:
     """A Unix socket the policy connects to, and the calls the evaluator makes over it."""
 
-    def __init__(self, *, socket_dir: Path | None = None, max_frame_bytes: int = 1 << 20) -> None:
+    def __init__(
+        self,
+        *,
+        socket_dir: Path | None = None,
+        max_frame_bytes: int = 1 << 20,
+        budget_s: float = float("inf"),
+    ) -> None:
         self._owned_dir = socket_dir is None
         self.socket_dir = Path(socket_dir or tempfile.mkdtemp(prefix="manieval-"))
         os.chmod(self.socket_dir, 0o700 if self._owned_dir else 0o755)
@@ -55,7 +67,8 @@ class PolicyEndpoint:
         self._listener.bind(str(self.path))
         self._listener.listen(1)
         self._conn: socket.socket | None = None
-        self.deadline = float("inf")
+        self.budget_s = budget_s
+        self.policy_time_s = 0.0  # charged time so far: waiting for answers to reset and act
 
     @property
     def address(self) -> str:
@@ -64,7 +77,7 @@ class PolicyEndpoint:
 
     def accept(self, *, timeout: float, alive: Callable[[], bool]) -> None:
         """Wait for the policy to connect, giving up early if its process has exited."""
-        deadline = time.monotonic() + self._bounded(timeout)
+        deadline = time.monotonic() + timeout
         try:
             while self._conn is None:
                 if not alive():
@@ -81,24 +94,30 @@ class PolicyEndpoint:
         finally:
             self._listener.close()
 
-    def call(self, message: dict[str, Any], *, expect: str, timeout: float) -> dict[str, Any]:
-        """Send one message and wait for its answer of type `expect`."""
+    def call(
+        self, message: dict[str, Any], *, expect: str, timeout: float, charged: bool = True
+    ) -> dict[str, Any]:
+        """Send one message and wait for its answer of type `expect`; a `charged` call's time
+        counts against the budget, and the call is cut off where the budget ends."""
         conn = self._require_conn()
         # Encoded before the try: an observation too large for the SDK is our problem, not the
         # policy's, and must not be recorded as its protocol error.
         frame = encode_frame(message, max_frame_bytes=DEFAULT_MAX_FRAME_BYTES)
+        remaining = self.budget_s - self.policy_time_s if charged else float("inf")
+        if remaining <= 0:
+            raise self._budget_exhausted(message["type"])
         started = time.monotonic()
-        deadline = started + self._bounded(timeout)
+        deadline = started + min(timeout, remaining)
         try:
             # A policy that stops reading must not block the send either.
             conn.settimeout(max(deadline - time.monotonic(), 0.001))
             conn.sendall(frame)
             reply = recv_message(conn, max_frame_bytes=self.max_frame_bytes, deadline=deadline)
         except TimeoutError:
-            if time.monotonic() >= self.deadline:
-                raise PolicyFailure(
-                    "budget_exhausted", "the evaluation's time budget ran out"
-                ) from None
+            if charged:
+                self.policy_time_s += time.monotonic() - started
+            if remaining < timeout:
+                raise self._budget_exhausted(message["type"]) from None
             raise PolicyFailure(
                 "policy_timeout", f"no answer to '{message['type']}' within {timeout:g}s"
             ) from None
@@ -108,6 +127,8 @@ class PolicyEndpoint:
             ) from None
         except ProtocolError as exc:
             raise PolicyFailure("protocol_error", str(exc)) from None
+        if charged:
+            self.policy_time_s += time.monotonic() - started
         if reply["type"] == "error":
             raise PolicyRaised(str(reply.get("message", "the policy reported an error"))[:2000])
         if reply["type"] != expect:
@@ -121,7 +142,10 @@ class PolicyEndpoint:
         """Handshake: check the policy speaks our protocol version."""
         try:
             reply = self.call(
-                {"type": "hello", "protocol": PROTOCOL_VERSION}, expect="ready", timeout=timeout
+                {"type": "hello", "protocol": PROTOCOL_VERSION},
+                expect="ready",
+                timeout=timeout,
+                charged=False,
             )
         except PolicyRaised as exc:
             raise PolicyFailure(
@@ -158,11 +182,12 @@ class PolicyEndpoint:
             except OSError:
                 pass
 
-    def _bounded(self, timeout: float) -> float:
-        remaining = self.deadline - time.monotonic()
-        if remaining <= 0:
-            raise PolicyFailure("budget_exhausted", "the evaluation's time budget ran out")
-        return min(timeout, remaining)
+    def _budget_exhausted(self, during: str) -> PolicyFailure:
+        return PolicyFailure(
+            "budget_exhausted",
+            f"the evaluation's time budget ran out during '{during}': the policy took "
+            f"{self.policy_time_s:.1f}s of the {self.budget_s:.1f}s it had here",
+        )
 
     def _require_conn(self) -> socket.socket:
         if self._conn is None:

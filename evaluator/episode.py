@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from evaluator.channel import PolicyChannel
 from evaluator.conditions import ConditionRuntime
-from evaluator.endpoint import PolicyRaised
-from evaluator.results import EpisodeResult
+from evaluator.endpoint import PolicyFailure, PolicyRaised
+from evaluator.results import EpisodeResult, FailureKind
 from evaluator.sim import flag, to_numpy
 
 
@@ -25,6 +26,17 @@ def action_problem(action: Any, shape: tuple[int, ...]) -> str | None:
     if not np.all(np.isfinite(action)):
         return "action contains NaN or infinity"
     return None
+
+
+@dataclass
+class Progress:
+    """How far an episode got."""
+
+    steps: int = 0
+    episode_return: float = 0.0
+    clipped: int = 0
+    success_once: bool = False
+    success_at_end: bool = False
 
 
 def run_episode(
@@ -43,48 +55,76 @@ def run_episode(
 
     With `ignore_terminations` the episode runs to `step_limit` whatever the task signals, and
     success at the last step is measured; otherwise it ends at the first termination (success)
-    and `success_at_end` is null.
+    and `success_at_end` is null. A PolicyFailure (an abort) propagates, carrying the episode's
+    record so far.
     """
     started = time.perf_counter()
-    low, high = bounds
+    policy_time_before = channel.policy_time_s
     raw_obs, _ = env.reset(seed=seed)
     seen = runtime.begin_episode(seed, to_numpy(raw_obs))
-    steps, total, clipped = 0, 0.0, 0
-    success_once = success_at_end = False
-    failure: tuple[Any, str] | None = None
+    progress = Progress()
+
+    def record(failure: tuple[FailureKind, str] | None) -> EpisodeResult:
+        failed = failure is not None
+        return EpisodeResult(
+            index=index,
+            seed=seed,
+            success_once=progress.success_once and not failed,
+            success_at_end=(progress.success_at_end and not failed)
+            if ignore_terminations
+            else None,
+            steps=progress.steps,
+            episode_return=progress.episode_return,
+            wall_time_s=time.perf_counter() - started,
+            policy_time_s=channel.policy_time_s - policy_time_before,
+            invalid_actions=int(failure is not None and failure[0] == "invalid_action"),
+            clipped_actions=progress.clipped,
+            failure=failure[0] if failure else None,
+            failure_reason=failure[1] if failure else None,
+        )
+
     try:
         channel.reset(seen, {"episode": index})
-        while steps < step_limit:
-            action = channel.act(seen)
-            problem = action_problem(action, low.shape)
-            if problem:
-                failure = ("invalid_action", problem)
-                break
-            wide = action.astype(np.float64)
-            applied = np.clip(wide, low, high)
-            clipped += int(not np.array_equal(applied, wide))
-            raw_obs, reward, terminated, truncated, info = env.step(applied.astype(np.float32))
-            steps += 1
-            total += float(to_numpy(reward))
-            success_at_end = flag(info["success"])
-            success_once = success_once or success_at_end
-            if frames is not None:
-                frames.append(to_numpy(env.render()))
-            if not ignore_terminations and (flag(terminated) or flag(truncated)):
-                break
-            seen = runtime.observe(to_numpy(raw_obs))
+        problem = _play(
+            env, channel, runtime, seen, progress, step_limit, bounds, ignore_terminations, frames
+        )
+        return record(("invalid_action", problem) if problem else None)
     except PolicyRaised as exc:
-        failure = ("policy_error", f"the policy raised: {exc}")
-    return EpisodeResult(
-        index=index,
-        seed=seed,
-        success_once=success_once and failure is None,
-        success_at_end=(success_at_end and failure is None) if ignore_terminations else None,
-        steps=steps,
-        episode_return=total,
-        wall_time_s=time.perf_counter() - started,
-        invalid_actions=int(failure is not None and failure[0] == "invalid_action"),
-        clipped_actions=clipped,
-        failure=failure[0] if failure else None,
-        failure_reason=failure[1] if failure else None,
-    )
+        return record(("policy_error", f"the policy raised: {exc}"))
+    except PolicyFailure as failure:
+        failure.episode = record((failure.kind, failure.reason))
+        raise
+
+
+def _play(
+    env: Any,
+    channel: PolicyChannel,
+    runtime: ConditionRuntime,
+    seen: Any,
+    progress: Progress,
+    step_limit: int,
+    bounds: tuple[np.ndarray, np.ndarray],
+    ignore_terminations: bool,
+    frames: list[np.ndarray] | None,
+) -> str | None:
+    """Act and step until the episode ends; why an action could not be applied, if one was not."""
+    low, high = bounds
+    while progress.steps < step_limit:
+        action = channel.act(seen)
+        problem = action_problem(action, low.shape)
+        if problem:
+            return problem
+        wide = action.astype(np.float64)
+        applied = np.clip(wide, low, high)
+        progress.clipped += int(not np.array_equal(applied, wide))
+        raw_obs, reward, terminated, truncated, info = env.step(applied.astype(np.float32))
+        progress.steps += 1
+        progress.episode_return += float(to_numpy(reward))
+        progress.success_at_end = flag(info["success"])
+        progress.success_once = progress.success_once or progress.success_at_end
+        if frames is not None:
+            frames.append(to_numpy(env.render()))
+        if not ignore_terminations and (flag(terminated) or flag(truncated)):
+            return None
+        seen = runtime.observe(to_numpy(raw_obs))
+    return None

@@ -14,6 +14,7 @@ from typing import Any
 
 from evaluator.plan import EvaluationPlan
 from evaluator.results import (
+    BudgetUse,
     ConditionResult,
     EpisodeResult,
     EvaluationResult,
@@ -26,7 +27,6 @@ from evaluator.runner import (
     RunOptions,
     Shard,
     ShardOutcome,
-    deadline_after,
     failed_episode,
     make_shards,
     run_shard,
@@ -51,7 +51,7 @@ def evaluate(
     `should_stop` is polled between episodes (a cancel): episodes not run are recorded so.
     """
     started = datetime.now(UTC)
-    options = RunOptions(deadline=deadline_after(plan.limits.budget_s), video_dir=video_dir)
+    options = RunOptions(video_dir=video_dir)
     callback = on_episode or (lambda _run, _episode: None)
     shards = make_shards(plan, workers)
     if len(shards) == 1:
@@ -187,6 +187,9 @@ def build_result(
         finished_at=finished(),
         status="aborted" if abort else "completed",
         abort=abort,
+        budget=BudgetUse(
+            budget_s=plan.limits.budget_s, used_s=sum(o.policy_time_s for o in outcomes)
+        ),
         score=ordered[0].score if ordered else 0.0,
         conditions=ordered,
         videos=[video for outcome in outcomes for video in outcome.videos],

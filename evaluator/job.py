@@ -24,7 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from evaluator.evaluation import build_result, installed_versions
 from evaluator.plan import EvaluationPlan, TaskRun
 from evaluator.results import Abort, EpisodeResult, EvaluationResult, SuiteRef, Versions
-from evaluator.runner import RunOptions, ShardOutcome, deadline_after, make_shards, run_shard
+from evaluator.runner import RunOptions, ShardOutcome, make_shards, run_shard
 from evaluator.suite import SEED_LIMIT, Suite, SuiteError
 
 JOB_SPEC_ENV = "MANIEVAL_JOB_SPEC"
@@ -154,6 +154,7 @@ class ShardReport(BaseModel):
     finished_at: datetime
     episodes: list[tuple[int, EpisodeResult]]
     abort: tuple[int, int, Abort] | None = None
+    policy_time_s: float = Field(default=0.0, ge=0)
 
 
 def run_job(
@@ -175,9 +176,7 @@ def run_job(
         socket_dir.mkdir(parents=True, exist_ok=True)
         previous = os.umask(SOCKET_UMASK)
         try:
-            options = RunOptions(
-                deadline=deadline_after(plan.limits.budget_s), socket_dir=socket_dir
-            )
+            options = RunOptions(socket_dir=socket_dir)
             outcome = run_shard(plan, source, present[index], options=options, on_episode=_progress)
         finally:
             os.umask(previous)
@@ -192,6 +191,7 @@ def run_job(
         finished_at=datetime.now(UTC),
         episodes=outcome.episodes,
         abort=outcome.abort,
+        policy_time_s=outcome.policy_time_s,
     )
 
 
@@ -251,7 +251,10 @@ def result_from_logs(plan: EvaluationPlan, logs: Sequence[str]) -> EvaluationRes
         raise JobOutputError("expected one shard report per index, in index order")
     if any(r.shards != len(logs) for r in reports):
         raise JobOutputError(f"shard reports do not all say {len(logs)} shards")
-    outcomes = [ShardOutcome(episodes=r.episodes, abort=r.abort) for r in reports]
+    outcomes = [
+        ShardOutcome(episodes=r.episodes, abort=r.abort, policy_time_s=r.policy_time_s)
+        for r in reports
+    ]
     result = build_result(
         plan,
         reports[0].policy,

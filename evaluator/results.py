@@ -10,7 +10,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from evaluator.stats import wilson_interval
 
 # 1.1: `success_at_end` is null when the suite does not measure it (episodes that stop at the
-# first success). A 1.0 document still reads as one.
+# first success); `budget` and each episode's `policy_time_s` say how much time the policy took.
+# A 1.0 document still reads as one.
 RESULT_SCHEMA_VERSION: Literal["1.1"] = "1.1"
 
 FailureKind = Literal[
@@ -45,6 +46,9 @@ class EpisodeResult(_Doc):
     steps: int = Field(ge=0)
     episode_return: float
     wall_time_s: float = Field(ge=0)
+    policy_time_s: float = Field(
+        default=0.0, ge=0, description="Time the policy took answering reset and act"
+    )
     invalid_actions: int = Field(default=0, ge=0)
     clipped_actions: int = Field(default=0, ge=0)
     failure: FailureKind | None = None
@@ -83,6 +87,15 @@ class Abort(_Doc):
     log_tail: str = ""
 
 
+class BudgetUse(_Doc):
+    """The policy's time budget and how much of it the policy used, over all workers."""
+
+    budget_s: float = Field(gt=0)
+    used_s: float = Field(
+        ge=0, description="Time the evaluator waited for the policy's answers to reset and act"
+    )
+
+
 class Video(_Doc):
     env_id: str
     condition: str
@@ -116,6 +129,7 @@ class EvaluationResult(_Doc):
     finished_at: datetime
     status: Literal["completed", "aborted"]
     abort: Abort | None = None
+    budget: BudgetUse | None = None
     score: float = Field(ge=0, le=1, description="Mean task success rate, first condition")
     conditions: list[ConditionResult]
     videos: list[Video] = []

@@ -7,7 +7,6 @@ seed, policy), so any number of workers produces the same records.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,22 +38,27 @@ class Shard:
 
     units: tuple[Unit, ...]
 
+    def episode_count(self) -> int:
+        """Episodes in the shard."""
+        return sum(len(episodes) for _, episodes in self.units)
+
 
 @dataclass
 class ShardOutcome:
-    """What a worker ran: its episodes, why it stopped early (if it did), its videos."""
+    """What a worker ran: its episodes, why it stopped early (if it did), its videos, and the
+    time its policy took (charged to the budget)."""
 
     episodes: list[tuple[int, EpisodeResult]] = field(default_factory=list)
     abort: tuple[int, int, Abort] | None = None  # (run index, episode index, why)
     videos: list[Video] = field(default_factory=list)
+    policy_time_s: float = 0.0
 
 
 @dataclass(frozen=True)
 class RunOptions:
-    """How to run: the budget's deadline (time.monotonic), where videos go, and where the
-    endpoint's socket is made (a fresh private directory unless a shared volume is named)."""
+    """How to run: where videos go, and where the endpoint's socket is made (a fresh private
+    directory unless a shared volume is named)."""
 
-    deadline: float
     video_dir: Path | None = None
     socket_dir: Path | None = None
 
@@ -191,7 +195,7 @@ def _run_task(
             outcome.episodes.append((run_index, result))
             on_episode(run_index, result)
     except PolicyFailure as failure:
-        result = failed_episode(
+        result = failure.episode or failed_episode(
             index, seed, failure.kind, failure.reason, at_end_measured=plan.ignore_terminations
         )
         outcome.episodes.append((run_index, result))
@@ -239,9 +243,10 @@ def run_shard(
     outcome = ShardOutcome()
     limits = plan.limits
     endpoint = PolicyEndpoint(
-        socket_dir=options.socket_dir, max_frame_bytes=limits.max_action_frame_bytes
+        socket_dir=options.socket_dir,
+        max_frame_bytes=limits.max_action_frame_bytes,
+        budget_s=budget_share(plan, shard),
     )
-    endpoint.deadline = options.deadline
     process = source.launch(endpoint=endpoint.address, socket_dir=endpoint.socket_dir)
     try:
         endpoint.accept(timeout=limits.connect_timeout_s, alive=process.alive)
@@ -266,6 +271,7 @@ def run_shard(
             outcome.episodes.append((first_run, charged))
             outcome.abort = (first_run, index, Abort(kind=failure.kind, reason=failure.reason))
     finally:
+        outcome.policy_time_s = endpoint.policy_time_s
         code = process.exit_code()  # before stop(): our own SIGTERM is not the policy's exit
         endpoint.close()
         process.stop()
@@ -290,6 +296,7 @@ def run_shard(
     return outcome
 
 
-def deadline_after(budget_s: float) -> float:
-    """A time.monotonic() deadline `budget_s` from now."""
-    return time.monotonic() + budget_s
+def budget_share(plan: EvaluationPlan, shard: Shard) -> float:
+    """The part of the plan's time budget a shard's policy process gets: its share of the
+    episodes, so that the whole evaluation gets the budget however it is sharded."""
+    return plan.limits.budget_s * shard.episode_count() / max(plan.episode_count(), 1)

@@ -19,7 +19,7 @@ REPO = HERE.parents[1]
 SCRIPTED = REPO / "examples" / "policies" / "scripted"
 RANDOM = REPO / "examples" / "policies" / "random"
 # Fields of an episode's record that measure time: no two runs share them.
-TIMINGS = frozenset({"wall_time_s"})
+TIMINGS = frozenset({"wall_time_s", "policy_time_s"})
 
 # A deterministic policy whose actions depend on the observation, so any difference in what the
 # policy sees shows up in the episode records.
