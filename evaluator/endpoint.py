@@ -22,15 +22,18 @@ from typing import Any
 from evaluator.results import EpisodeResult, FailureKind
 from manieval_sdk.wire import (
     DEFAULT_MAX_FRAME_BYTES,
+    HEADER,
     PROTOCOL_VERSION,
+    FrameTooLarge,
     PeerClosed,
     ProtocolError,
     encode_frame,
-    recv_message,
     send_message,
+    unpack_message,
 )
 
 SOCKET_NAME = "policy.sock"
+POLL_S = 0.1  # how often a wait for the policy looks whether the evaluation was asked to stop
 
 
 class PolicyFailure(Exception):
@@ -46,6 +49,10 @@ class PolicyFailure(Exception):
 
 class PolicyRaised(Exception):
     """The policy's own code raised during a call; it ends the episode, not the evaluation."""
+
+
+class Stopped(Exception):
+    """The evaluation was asked to stop (a cancel, or another worker's abort): nobody's fault."""
 
 
 class PolicyEndpoint:
@@ -69,6 +76,7 @@ class PolicyEndpoint:
         self._conn: socket.socket | None = None
         self.budget_s = budget_s
         self.policy_time_s = 0.0  # charged time so far: waiting for answers to reset and act
+        self.should_stop: Callable[[], bool] = lambda: False  # polled while waiting: Stopped
 
     @property
     def address(self) -> str:
@@ -80,13 +88,15 @@ class PolicyEndpoint:
         deadline = time.monotonic() + timeout
         try:
             while self._conn is None:
+                if self.should_stop():
+                    raise Stopped()
                 if not alive():
                     raise PolicyFailure("policy_crashed", "the policy exited before connecting")
                 if time.monotonic() >= deadline:
                     raise PolicyFailure(
                         "policy_timeout", f"the policy did not connect within {timeout:g}s"
                     )
-                self._listener.settimeout(0.1)
+                self._listener.settimeout(POLL_S)
                 try:
                     self._conn, _ = self._listener.accept()
                 except TimeoutError:
@@ -109,10 +119,8 @@ class PolicyEndpoint:
         started = time.monotonic()
         deadline = started + min(timeout, remaining)
         try:
-            # A policy that stops reading must not block the send either.
-            conn.settimeout(max(deadline - time.monotonic(), 0.001))
-            conn.sendall(frame)
-            reply = recv_message(conn, max_frame_bytes=self.max_frame_bytes, deadline=deadline)
+            self._send(conn, frame, deadline)  # a policy that stops reading must not block it
+            reply = self._receive(conn, deadline)
         except TimeoutError:
             if charged:
                 self.policy_time_s += time.monotonic() - started
@@ -163,6 +171,45 @@ class PolicyEndpoint:
         return self.call({"type": "act", "obs": obs}, expect="action", timeout=timeout).get(
             "action"
         )
+
+    def _send(self, conn: socket.socket, frame: bytes, deadline: float) -> None:
+        view = memoryview(frame)
+        while view:
+            conn.settimeout(self._next_wait(deadline))
+            try:
+                view = view[conn.send(view) :]
+            except TimeoutError:
+                continue
+
+    def _receive(self, conn: socket.socket, deadline: float) -> dict[str, Any]:
+        (length,) = HEADER.unpack(self._read(conn, HEADER.size, deadline))
+        if length > self.max_frame_bytes:  # refused before a byte of it is read
+            raise FrameTooLarge(f"frame of {length} bytes exceeds the {self.max_frame_bytes} limit")
+        if length == 0:
+            raise ProtocolError("empty frame")
+        return unpack_message(self._read(conn, length, deadline))
+
+    def _read(self, conn: socket.socket, size: int, deadline: float) -> bytes:
+        data = bytearray()
+        while len(data) < size:
+            conn.settimeout(self._next_wait(deadline))
+            try:
+                chunk = conn.recv(min(size - len(data), 1 << 20))
+            except TimeoutError:
+                continue
+            if not chunk:
+                raise PeerClosed("connection closed by the policy")
+            data += chunk
+        return bytes(data)
+
+    def _next_wait(self, deadline: float) -> float:
+        """How long the next wait on the socket may block: short, so a stop is seen at once."""
+        if self.should_stop():
+            raise Stopped()
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise TimeoutError()
+        return min(POLL_S, remaining)
 
     def close(self) -> None:
         """Tell the policy to stop (best effort) and release the socket."""

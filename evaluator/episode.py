@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -10,7 +11,7 @@ import numpy as np
 
 from evaluator.channel import PolicyChannel
 from evaluator.conditions import ConditionRuntime
-from evaluator.endpoint import PolicyFailure, PolicyRaised
+from evaluator.endpoint import PolicyFailure, PolicyRaised, Stopped
 from evaluator.results import EpisodeResult, FailureKind
 from evaluator.sim import flag, to_numpy
 
@@ -50,13 +51,14 @@ def run_episode(
     bounds: tuple[np.ndarray, np.ndarray],
     ignore_terminations: bool,
     frames: list[np.ndarray] | None = None,
+    should_stop: Callable[[], bool] = lambda: False,
 ) -> EpisodeResult:
     """Run one episode; policy-level failures end it as a failure with a reason.
 
     With `ignore_terminations` the episode runs to `step_limit` whatever the task signals, and
     success at the last step is measured; otherwise it ends at the first termination (success)
     and `success_at_end` is null. A PolicyFailure (an abort) propagates, carrying the episode's
-    record so far.
+    record so far; so does Stopped, when `should_stop` (polled between steps) says so.
     """
     started = time.perf_counter()
     policy_time_before = channel.policy_time_s
@@ -86,7 +88,16 @@ def run_episode(
     try:
         channel.reset(seen, {"episode": index})
         problem = _play(
-            env, channel, runtime, seen, progress, step_limit, bounds, ignore_terminations, frames
+            env,
+            channel,
+            runtime,
+            seen,
+            progress,
+            step_limit,
+            bounds,
+            ignore_terminations,
+            frames,
+            should_stop,
         )
         return record(("invalid_action", problem) if problem else None)
     except PolicyRaised as exc:
@@ -106,10 +117,13 @@ def _play(
     bounds: tuple[np.ndarray, np.ndarray],
     ignore_terminations: bool,
     frames: list[np.ndarray] | None,
+    should_stop: Callable[[], bool],
 ) -> str | None:
     """Act and step until the episode ends; why an action could not be applied, if one was not."""
     low, high = bounds
     while progress.steps < step_limit:
+        if should_stop():
+            raise Stopped()
         action = channel.act(seen)
         problem = action_problem(action, low.shape)
         if problem:

@@ -48,7 +48,9 @@ def evaluate(
 ) -> EvaluationResult:
     """Run every episode of `plan` against the policy from `source` and score it.
 
-    `should_stop` is polled between episodes (a cancel): episodes not run are recorded so.
+    `should_stop` (a cancel) is polled between steps and every 0.1 s while the policy is
+    answering, so a run stops mid-episode, even mid-call; the episode in progress and those not
+    started are recorded as `not_run`.
     """
     started = datetime.now(UTC)
     options = RunOptions(video_dir=video_dir)
@@ -82,16 +84,22 @@ def _run_parallel(
     context = multiprocessing.get_context("spawn")
     events = context.Queue()
     stop = context.Event()
-    with ProcessPoolExecutor(
+    pool = ProcessPoolExecutor(
         max_workers=len(shards),
         mp_context=context,
         initializer=_init_worker,
         initargs=(events, stop),
-    ) as pool:
+    )
+    try:
         futures = [pool.submit(_shard_in_worker, plan, source, shard, options) for shard in shards]
         _pump_events(futures, events, callback, stop, should_stop)
-        outcomes = [future.result() for future in futures]
-    return outcomes
+        return [future.result() for future in futures]
+    finally:
+        # Normally every shard has returned by now, its policy stopped: the worker processes'
+        # own exit (unloading torch and SAPIEN) need not delay the result, nor a cancel. If we
+        # got here by an exception, the stop makes the shards still running end soon.
+        stop.set()
+        pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _pump_events(

@@ -14,7 +14,7 @@ from typing import Any
 
 from evaluator.channel import PolicyChannel, RemoteChannel
 from evaluator.conditions import ConditionRuntime
-from evaluator.endpoint import PolicyEndpoint, PolicyFailure, PolicyRaised
+from evaluator.endpoint import PolicyEndpoint, PolicyFailure, PolicyRaised, Stopped
 from evaluator.episode import run_episode
 from evaluator.plan import EvaluationPlan, TaskRun
 from evaluator.results import Abort, EpisodeResult, FailureKind, Video
@@ -185,6 +185,7 @@ def _run_task(
                     bounds=bounds,
                     ignore_terminations=plan.ignore_terminations,
                     frames=frames,
+                    should_stop=should_stop,
                 )
                 if frames and options.video_dir is not None:
                     outcome.videos.append(
@@ -247,6 +248,7 @@ def run_shard(
         max_frame_bytes=limits.max_action_frame_bytes,
         budget_s=budget_share(plan, shard),
     )
+    endpoint.should_stop = should_stop
     process = source.launch(endpoint=endpoint.address, socket_dir=endpoint.socket_dir)
     try:
         endpoint.accept(timeout=limits.connect_timeout_s, alive=process.alive)
@@ -270,6 +272,8 @@ def run_shard(
             )
             outcome.episodes.append((first_run, charged))
             outcome.abort = (first_run, index, Abort(kind=failure.kind, reason=failure.reason))
+    except Stopped:
+        pass  # cancelled: the episode in progress, and those after it, are recorded not_run
     finally:
         outcome.policy_time_s = endpoint.policy_time_s
         code = process.exit_code()  # before stop(): our own SIGTERM is not the policy's exit
