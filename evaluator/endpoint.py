@@ -34,6 +34,11 @@ from manieval_sdk.wire import (
 
 SOCKET_NAME = "policy.sock"
 POLL_S = 0.1  # how often a wait for the policy looks whether the evaluation was asked to stop
+# msgpack raises these without a message; what they mean, for the reason the policy is shown.
+MSGPACK_ERRORS = {
+    "FormatError": "a byte that starts no msgpack value (such as 0xc1, which msgpack never uses)",
+    "StackError": "values nested deeper than the 1024 levels a decoder accepts",
+}
 
 
 class PolicyFailure(Exception):
@@ -159,10 +164,12 @@ class PolicyEndpoint:
             raise PolicyFailure(
                 "protocol_error", f"the policy refused the handshake: {exc}"
             ) from None
-        if reply.get("protocol") != PROTOCOL_VERSION:
+        spoken = reply.get("protocol")
+        # The integer itself: True and 1.0 compare equal to 1 in Python, not on the wire.
+        if type(spoken) is not int or spoken != PROTOCOL_VERSION:
             raise PolicyFailure(
                 "protocol_error",
-                f"the policy speaks protocol {reply.get('protocol')!r}, not {PROTOCOL_VERSION}",
+                f"the policy speaks protocol {spoken!r}, not {PROTOCOL_VERSION} (an integer)",
             )
         return reply
 
@@ -187,7 +194,11 @@ class PolicyEndpoint:
             raise FrameTooLarge(f"frame of {length} bytes exceeds the {self.max_frame_bytes} limit")
         if length == 0:
             raise ProtocolError("empty frame")
-        return unpack_message(self._read(conn, length, deadline))
+        payload = self._read(conn, length, deadline)
+        try:
+            return unpack_message(payload)
+        except ProtocolError as exc:
+            raise ProtocolError(explained(exc)) from None
 
     def _read(self, conn: socket.socket, size: int, deadline: float) -> bytes:
         data = bytearray()
@@ -240,3 +251,12 @@ class PolicyEndpoint:
         if self._conn is None:
             raise RuntimeError("the policy is not connected")
         return self._conn
+
+
+def explained(exc: ProtocolError) -> str:
+    """The decoder's message, with what the error means when msgpack gave no detail."""
+    text = str(exc)
+    cause = exc.__context__  # kept by `raise ... from None`, which only hides it
+    if text.endswith(": ") and cause is not None:
+        return text + MSGPACK_ERRORS.get(type(cause).__name__, repr(cause))
+    return text

@@ -1,0 +1,107 @@
+"""The evaluator's end of the protocol against a scripted peer: handshake and malformed frames."""
+
+from __future__ import annotations
+
+import struct
+import threading
+from collections.abc import Iterator
+
+import pytest
+
+from evaluator.endpoint import PolicyEndpoint, PolicyFailure, Stopped
+from manieval_sdk.serve import connect
+from manieval_sdk.wire import encode_frame, recv_message
+
+
+class Peer:
+    """A policy that answers `hello` with whatever bytes it is given, then stays quiet."""
+
+    def __init__(self, endpoint: PolicyEndpoint, reply: bytes) -> None:
+        self._address = endpoint.address
+        self._reply = reply
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        sock = connect(self._address, timeout=10)
+        with sock:
+            recv_message(sock)
+            sock.sendall(self._reply)
+            self._done.wait(30)
+
+    def stop(self) -> None:
+        self._done.set()
+        self._thread.join(5)
+
+
+@pytest.fixture
+def endpoint() -> Iterator[PolicyEndpoint]:
+    endpoint = PolicyEndpoint()
+    yield endpoint
+    endpoint.close()
+
+
+def handshake(endpoint: PolicyEndpoint, reply: bytes) -> None:
+    peer = Peer(endpoint, reply)
+    try:
+        endpoint.accept(timeout=10, alive=lambda: True)
+        endpoint.hello(timeout=10)
+    finally:
+        peer.stop()
+
+
+def frame(payload: bytes) -> bytes:
+    return struct.pack(">I", len(payload)) + payload
+
+
+def test_the_integer_1_completes_the_handshake(endpoint: PolicyEndpoint):
+    handshake(endpoint, encode_frame({"type": "ready", "protocol": 1}))
+
+
+@pytest.mark.parametrize("version", [True, 1.0, "1", None, 2])
+def test_a_protocol_version_other_than_the_integer_1_is_refused(
+    endpoint: PolicyEndpoint, version: object
+):
+    with pytest.raises(PolicyFailure, match="the policy speaks protocol") as failed:
+        handshake(endpoint, encode_frame({"type": "ready", "protocol": version}))
+    assert failed.value.kind == "protocol_error"
+    assert repr(version) in failed.value.reason
+
+
+def test_an_error_reply_to_hello_is_a_refused_handshake(endpoint: PolicyEndpoint):
+    with pytest.raises(PolicyFailure, match="refused the handshake: v2 only") as failed:
+        handshake(endpoint, encode_frame({"type": "error", "message": "v2 only"}))
+    assert failed.value.kind == "protocol_error"
+
+
+@pytest.mark.parametrize(
+    ("payload", "detail"),
+    [
+        (b"\xc1" * 16, "FormatError: a byte that starts no msgpack value"),
+        (b"\x91" * 5000 + b"\xc0", "StackError: values nested deeper than the 1024 levels"),
+        (b"\x81\xa4type", "incomplete input"),
+    ],
+)
+def test_a_malformed_reply_is_refused_with_a_reason_that_says_what_is_wrong(
+    endpoint: PolicyEndpoint, payload: bytes, detail: str
+):
+    with pytest.raises(PolicyFailure) as failed:
+        handshake(endpoint, frame(payload))
+    assert failed.value.kind == "protocol_error"
+    assert failed.value.reason.startswith("malformed message: ")
+    assert detail in failed.value.reason
+    assert not failed.value.reason.endswith(": ")
+
+
+def test_a_stop_interrupts_a_call_that_is_waiting_for_the_policy(endpoint: PolicyEndpoint):
+    stop = threading.Event()
+    endpoint.should_stop = stop.is_set
+    peer = Peer(endpoint, b"")  # reads hello, never answers
+    try:
+        endpoint.accept(timeout=10, alive=lambda: True)
+        threading.Timer(0.5, stop.set).start()
+        with pytest.raises(Stopped):
+            endpoint.hello(timeout=120)
+    finally:
+        peer.stop()
