@@ -8,14 +8,15 @@ record is the same, byte for byte, timings aside.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 
 from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import EvaluationResult
 from evaluator.suite import load_suite
-from tests.evaluator.conftest import SCRIPTED, TIMINGS, run
+from tests.evaluator.conftest import SCRIPTED, TIMINGS, run, tiny_plan
 
 pytestmark = pytest.mark.sim
 
@@ -99,3 +100,40 @@ def test_sharding_over_workers_changes_no_record(
     plan: EvaluationPlan, in_sequence: dict[Key, str], workers: int
 ):
     assert records(run(plan, SCRIPTED, workers=workers)) == in_sequence
+
+
+# A stochastic policy written the naive way: numpy's global generator, never seeded by the policy.
+NAIVE_STOCHASTIC = """
+import numpy as np
+from manieval_sdk import Policy, serve
+
+class Noisy(Policy):
+    SEED_GLOBALS
+
+    def act(self, obs):
+        return np.random.uniform(self.spec.action_low, self.spec.action_high).astype(np.float32)
+
+serve(Noisy())
+"""
+
+
+def naive_policy(make_policy: Callable[[str], Path], *, sdk_seeds_globals: bool) -> Path:
+    setting = "pass" if sdk_seeds_globals else "seed_globals = False"
+    return make_policy(NAIVE_STOCHASTIC.replace("SEED_GLOBALS", setting))
+
+
+def test_a_naive_stochastic_policy_gives_the_same_records_with_1_and_3_workers(
+    make_policy: Callable[[str], Path],
+):
+    # The SDK seeds numpy's global generator from each episode's first observation.
+    policy = naive_policy(make_policy, sdk_seeds_globals=True)
+    plan = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal", "obs_noise"])
+    assert records(run(plan, policy, workers=1)) == records(run(plan, policy, workers=3))
+
+
+def test_without_the_sdks_seeding_the_naive_policy_does_not_even_repeat_itself(
+    make_policy: Callable[[str], Path],
+):
+    policy = naive_policy(make_policy, sdk_seeds_globals=False)
+    plan = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"])
+    assert records(run(plan, policy)) != records(run(plan, policy))
