@@ -7,6 +7,7 @@ from datetime import datetime, timedelta
 from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DB
+from sqlalchemy.orm import joinedload
 
 from server.kit import security
 from server.kit.errors import Conflict, Invalid
@@ -110,7 +111,9 @@ def session_for(db: DB, *, cookie: str | None) -> Session | None:
     if not cookie or (parsed := security.parse_secret(cookie, "session")) is None:
         return None
     prefix, digest = parsed
-    found = db.scalar(select(Session).where(Session.prefix == prefix))
+    found = db.scalar(
+        select(Session).options(joinedload(Session.user)).where(Session.prefix == prefix)
+    )
     if found is None or not security.secrets_equal(found.digest, digest):
         return None
     if found.expires_at <= utcnow():
@@ -150,7 +153,9 @@ def user_for_token(db: DB, *, plaintext: str, now: datetime | None = None) -> Us
     if (parsed := security.parse_secret(plaintext, "token")) is None:
         return None
     prefix, digest = parsed
-    token = db.scalar(select(ApiToken).where(ApiToken.prefix == prefix))
+    token = db.scalar(
+        select(ApiToken).options(joinedload(ApiToken.user)).where(ApiToken.prefix == prefix)
+    )
     if token is None or token.revoked_at is not None:
         return None
     if not security.secrets_equal(token.digest, digest):

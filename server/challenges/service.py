@@ -49,7 +49,11 @@ def load_challenge(
         header = f"# {suite.name} with {options.episodes} episodes per task (a try-out)\n"
         suite_yaml = header + yaml.safe_dump(suite.model_dump(mode="json"), sort_keys=False)
 
-    challenge = db.scalar(select(Challenge).where(Challenge.slug == suite.name))
+    challenge = db.scalar(
+        select(Challenge)
+        .options(selectinload(Challenge.phases))
+        .where(Challenge.slug == suite.name)
+    )
     if challenge is None:
         challenge = Challenge(slug=suite.name)
         db.add(challenge)
@@ -111,8 +115,10 @@ def commitment(suite: Suite, phase: str, seed_secret: str) -> str:
 
 
 def get_challenge(db: DB, *, slug: str) -> Challenge:
-    """The challenge with this slug, or NotFound."""
-    challenge = db.scalar(select(Challenge).where(Challenge.slug == slug))
+    """The challenge with this slug, with its phases, or NotFound."""
+    challenge = db.scalar(
+        select(Challenge).options(selectinload(Challenge.phases)).where(Challenge.slug == slug)
+    )
     if challenge is None:
         raise NotFound(f"no challenge {slug!r}")
     return challenge
@@ -143,10 +149,14 @@ def shown_phase(challenge: Challenge, *, name: str | None) -> Phase:
 
 
 def list_challenges(db: DB, *, page: int, per_page: int) -> tuple[list[Challenge], int]:
-    """One page of the challenges, oldest first, and how many there are."""
+    """One page of the challenges with their phases, oldest first, and how many there are."""
     total = db.scalar(select(func.count()).select_from(Challenge)) or 0
     rows = db.scalars(
-        select(Challenge).order_by(Challenge.id).offset((page - 1) * per_page).limit(per_page)
+        select(Challenge)
+        .options(selectinload(Challenge.phases))
+        .order_by(Challenge.id)
+        .offset((page - 1) * per_page)
+        .limit(per_page)
     )
     return list(rows), total
 

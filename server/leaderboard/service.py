@@ -36,7 +36,7 @@ from server.models import (
 def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
     """Recompute a user's rows in a phase's leaderboard (call inside the changing transaction)."""
     # Serialise refreshes of one user: the unique (phase, owner) row must not be raced.
-    db.execute(select(User.id).where(User.id == user_id).with_for_update())
+    username = db.scalar(select(User.username).where(User.id == user_id).with_for_update())
     db.execute(
         delete(LeaderboardEntry).where(
             LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.user_id == user_id
@@ -60,6 +60,7 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
         chosen.append(best_regular)
     for submission in chosen:
         assert submission.score is not None
+        assert username is not None
         db.add(
             LeaderboardEntry(
                 phase_id=phase_id,
@@ -69,7 +70,7 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
                 baseline=submission.baseline,
                 score=submission.score,
                 submitted_at=submission.created_at,
-                username=submission.user.username,
+                username=username,
                 summary=summary(db, submission=submission),
             )
         )

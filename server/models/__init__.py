@@ -1,8 +1,10 @@
 """The database schema (SQLAlchemy 2.0 typed models), one module per domain.
 
 Every public name is re-exported here, so ``from server.models import Submission`` works
-whichever module defines it. Alembic migrations in ``alembic/versions`` are the only way this
-schema reaches a database; ``alembic check`` in the tests proves the two agree.
+whichever module defines it. Every relationship is ``lazy="raise"``: a query names what it
+loads (``selectinload``, ``joinedload``), so no attribute access runs a query behind its back.
+Alembic migrations in ``alembic/versions`` are the only way this schema reaches a database;
+``alembic check`` in the tests proves the two agree.
 """
 
 from server.models.accounts import ApiToken, Session, User

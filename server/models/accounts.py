@@ -33,7 +33,7 @@ class ApiToken(Base):
     last_used_at: Mapped[datetime | None]
     revoked_at: Mapped[datetime | None]
 
-    user: Mapped[User] = relationship()
+    user: Mapped[User] = relationship(lazy="raise")
 
 
 class Session(Base):
@@ -46,4 +46,4 @@ class Session(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     expires_at: Mapped[datetime]
 
-    user: Mapped[User] = relationship()
+    user: Mapped[User] = relationship(lazy="raise")

@@ -25,7 +25,10 @@ class Challenge(Base):
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 
     phases: Mapped[list[Phase]] = relationship(
-        back_populates="challenge", order_by="Phase.id", cascade="all, delete-orphan"
+        back_populates="challenge",
+        order_by="Phase.id",
+        cascade="all, delete-orphan",
+        lazy="raise",
     )
 
 
@@ -43,7 +46,7 @@ class Phase(Base):
     leaderboard_version: Mapped[int] = mapped_column(Integer, default=0)
     """Bumped whenever the phase's leaderboard changes: the key of the API's cache."""
 
-    challenge: Mapped[Challenge] = relationship(back_populates="phases")
+    challenge: Mapped[Challenge] = relationship(back_populates="phases", lazy="raise")
 
     def is_open(self, now: datetime) -> bool:
         return (self.opens_at is None or self.opens_at <= now) and (

@@ -92,9 +92,9 @@ class Submission(Base):
     result: Mapped[dict[str, Any] | None]
     """The evaluator's result document of the current attempt (schema evaluator.results)."""
 
-    user: Mapped[User] = relationship()
-    challenge: Mapped[Challenge] = relationship()
-    phase: Mapped[Phase] = relationship()
+    user: Mapped[User] = relationship(lazy="raise")
+    challenge: Mapped[Challenge] = relationship(lazy="raise")
+    phase: Mapped[Phase] = relationship(lazy="raise")
 
 
 class Transition(Base):

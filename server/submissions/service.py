@@ -13,6 +13,7 @@ from datetime import datetime, timedelta
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session as DB
+from sqlalchemy.orm import joinedload
 
 from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, QuotaExceeded
 from server.leaderboard.service import refresh
@@ -51,6 +52,13 @@ class Resolved:
 
 Resolver = Callable[[str], Resolved]
 
+SHOWN_WITH = (
+    joinedload(Submission.user),
+    joinedload(Submission.challenge),
+    joinedload(Submission.phase),
+)
+"""What a submission is shown with: its owner, challenge and phase (loaded in the same query)."""
+
 
 def submit(
     db: DB,
@@ -83,9 +91,9 @@ def submit(
     check_quota(db, user=user, challenge=challenge, now=now)
 
     submission = Submission(
-        user_id=user.id,
-        challenge_id=challenge.id,
-        phase_id=phase.id,
+        user=user,  # the objects, not only their ids: the answer shows them
+        challenge=challenge,
+        phase=phase,
         image=image,
         pinned_image=resolved.pinned,
         image_bytes=resolved.size_bytes,
@@ -184,8 +192,8 @@ def owned_or_admin(submission: Submission, user: User | None) -> bool:
 
 
 def find_visible(db: DB, *, submission_id: int, user: User | None) -> Submission | None:
-    """The submission if `user` may see it, else None."""
-    submission = db.get(Submission, submission_id)
+    """The submission, with what it is shown with, if `user` may see it, else None."""
+    submission = db.get(Submission, submission_id, options=SHOWN_WITH)
     if submission is None or not visible_to(submission, user):
         return None
     return submission
@@ -200,8 +208,9 @@ def get_visible(db: DB, *, submission_id: int, user: User | None) -> Submission:
 
 
 def get_owned(db: DB, *, submission_id: int, user: User | None) -> Submission:
-    """The submission if `user` owns it or is an admin, else NotFound."""
-    submission = db.get(Submission, submission_id)
+    """The submission, with what it is shown with, if `user` owns it or is an admin, else
+    NotFound."""
+    submission = db.get(Submission, submission_id, options=SHOWN_WITH)
     if submission is None or not owned_or_admin(submission, user):
         raise NotFound(f"no submission {submission_id}")
     return submission
@@ -271,8 +280,8 @@ def list_submissions(
     challenge: Challenge | None = None,
     state: State | None = None,
 ) -> tuple[list[Submission], int]:
-    """One page of submissions, newest first (a user's, a challenge's, in a state), and how
-    many match."""
+    """One page of submissions with what they are shown with, newest first (a user's, a
+    challenge's, in a state), and how many match."""
     query = select(Submission)
     if user is not None:
         query = query.where(Submission.user_id == user.id)
@@ -282,7 +291,8 @@ def list_submissions(
         query = query.where(Submission.state == state)
     total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
     rows = db.scalars(
-        query.order_by(Submission.created_at.desc(), Submission.id.desc())
+        query.options(*SHOWN_WITH)
+        .order_by(Submission.created_at.desc(), Submission.id.desc())
         .offset((page - 1) * per_page)
         .limit(per_page)
     ).all()

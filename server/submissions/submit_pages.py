@@ -111,6 +111,7 @@ def submit_post(
         db.commit()
     except AppError as exc:
         db.rollback()
+        challenge = get_challenge(db, slug=slug)  # the rollback expired it, and its phases
         return _form(request, who, db, challenge, form=form, error=exc)
     svc.dispatcher.dispatch()  # after the commit; the periodic sweep retries if this fails
     return redirect(f"/submissions/{submission.id}")

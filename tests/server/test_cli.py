@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 from sqlalchemy import select
+from sqlalchemy.orm import selectinload
 from typer.testing import CliRunner
 
 from manieval.cli import app
@@ -57,7 +58,7 @@ def test_challenge_load_creates_then_updates(env: Path) -> None:
     )
     assert r.exit_code == 0, r.output
     with db_session(env) as db:
-        challenges = db.scalars(select(Challenge)).all()
+        challenges = db.scalars(select(Challenge).options(selectinload(Challenge.phases))).all()
         assert len(challenges) == 1
         assert challenges[0].quota_per_day == 7
         assert "episodes: 4" in challenges[0].suite_yaml
