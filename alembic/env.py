@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 from alembic import context
 from sqlalchemy import Connection
 
@@ -13,6 +15,11 @@ config = context.config
 
 def _url() -> str:
     url = config.get_main_option("sqlalchemy.url")
+    if url:
+        return url
+    # The migration Job holds the database URL and nothing else (k8s/base/migrate.yaml), not the
+    # secrets the server's settings insist on.
+    url = os.environ.get("MANIEVAL_DATABASE_URL", "")
     if url:
         return url
     from server.kit.settings import Settings

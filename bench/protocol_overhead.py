@@ -20,7 +20,7 @@ sys.path.insert(0, str(REPO))
 from evaluator.channel import InProcessChannel, PolicyChannel, RemoteChannel  # noqa: E402
 from evaluator.endpoint import PolicyEndpoint  # noqa: E402
 from evaluator.plan import EvaluationPlan, build_plan  # noqa: E402
-from evaluator.runner import RunOptions, ShardOutcome, deadline_after, run_units  # noqa: E402
+from evaluator.runner import RunOptions, ShardOutcome, run_units  # noqa: E402
 from evaluator.sources import LocalDirectory  # noqa: E402
 from evaluator.suite import load_suite  # noqa: E402
 
@@ -42,7 +42,7 @@ def plan_for(obs_mode: str, episodes: int, steps: int) -> EvaluationPlan:
 def steps_per_second(plan: EvaluationPlan, channel: PolicyChannel) -> float:
     outcome = ShardOutcome()
     units = [(0, tuple(enumerate(plan.runs[0].seeds)))]
-    options = RunOptions(deadline=deadline_after(3600))
+    options = RunOptions()
     run_units(plan, channel, units, outcome, options=options, on_episode=lambda _r, _e: None)
     episodes = [e for _, e in outcome.episodes]
     assert all(e.failure is None for e in episodes), episodes

@@ -5,7 +5,8 @@ import typer
 from evaluator.job import evaluate_job
 from manieval import account, participant
 from manieval.evaluate import evaluate
-from server.cli import admin_app, challenge_app, db_app, demo, serve
+from manieval.serve import demo, serve
+from server.cli import admin_app, challenge_app, db_app
 
 app = typer.Typer(
     name="manieval",

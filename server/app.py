@@ -1,5 +1,10 @@
 """The FastAPI application: ``create_app(settings)`` wires the routers of each domain, the web
-pages, the error handlers, monitoring, the queue and the embedded worker."""
+pages, the error handlers, monitoring and the queue.
+
+The server never imports the worker. With ``MANIEVAL_QUEUE=celery`` it sends wake-ups to the
+broker by task name; on the embedded default the `manieval` CLI composes it with the embedded
+worker (`manieval/service.py`) and hands that worker's queue in as `work`.
+"""
 
 from __future__ import annotations
 
@@ -28,33 +33,11 @@ from server.submissions import api as submissions_api
 from server.submissions import events, internal, submit_pages
 from server.submissions import pages as submissions_pages
 from server.submissions.images import image_resolver
-from server.submissions.outbox import Dispatcher, WorkQueue
-from server.submissions.service import Resolver, end_interrupted
-from worker.embedded import InlineQueue
+from server.submissions.outbox import CeleryQueue, Dispatcher, Unattached, WorkQueue
+from server.submissions.service import Resolver
 
 log = logging.getLogger(__name__)
 SWEEP_INTERVAL_S = 5.0
-RECONCILE_EVERY = 6  # sweeps: every 30 s
-
-
-def inline_queue(sessions: sessionmaker[Session], settings: Settings) -> InlineQueue:
-    from worker.run import run_next
-
-    def drain(_sid: int, _attempt: int) -> None:
-        # A message is a wake-up: run the fairest queued submissions until none can be claimed.
-        while run_next(sessions, settings) is not None:
-            pass
-
-    return InlineQueue(drain, threads=settings.inline_workers)
-
-
-def recover_inline(sessions: sessionmaker[Session], work: WorkQueue) -> None:
-    """After a restart of the embedded server: end the runs it had in flight, and send the
-    queued ones again."""
-    with sessions.begin() as db:
-        pending = end_interrupted(db)
-    for sid, attempt in pending:
-        work.enqueue(sid, attempt)
 
 
 def create_app(
@@ -67,18 +50,14 @@ def create_app(
     background: bool = True,
 ) -> FastAPI:
     """The app. Tests pass their own session factory, queue, resolver or limiter, and
-    `background=False` to run without the outbox sweeper and the embedded worker thread."""
+    `background=False` to run without the outbox sweeper."""
     if sessions is None:
         sessions = session_factory(make_engine(settings.resolved_database_url))
-    inline: InlineQueue | None = None
     if work is None:
         if settings.queue == "celery":
-            from worker.queue import CeleryQueue
-
-            work = CeleryQueue(settings)
+            work = CeleryQueue(settings.broker_url, settings.celery_queue)
         else:
-            inline = inline_queue(sessions, settings)
-            work = inline
+            work = Unattached()
     if limiter is None:
         limiter = _limiter(settings)
     dispatcher = Dispatcher(sessions, work)
@@ -94,22 +73,14 @@ def create_app(
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         sweeper = threading.Thread(
-            target=_sweep,
-            args=(dispatcher, stop, sessions, inline, settings),
-            name="manieval-sweep",
-            daemon=True,
+            target=_sweep, args=(dispatcher, stop), name="manieval-sweep", daemon=True
         )
-        if inline is not None and background:
-            recover_inline(sessions, inline)
-            inline.start()
         if background:
             sweeper.start()
         try:
             yield
         finally:
             stop.set()
-            if inline is not None:
-                inline.stop(timeout=5)
 
     app = FastAPI(
         title="ManiEval",
@@ -118,7 +89,6 @@ def create_app(
         lifespan=lifespan,
     )
     app.state.services = svc
-    app.state.inline_queue = inline
     app.state.score_history = challenges_pages.ScoreHistory()
     app.state.event_timing = events.StreamTiming()
     app.state.event_slots = events.StreamSlots()
@@ -150,25 +120,7 @@ def _limiter(settings: Settings) -> RateLimiter:
     return MemoryRateLimiter()
 
 
-def _sweep(
-    dispatcher: Dispatcher,
-    stop: threading.Event,
-    sessions: sessionmaker[Session],
-    inline: InlineQueue | None,
-    settings: Settings,
-) -> None:
-    """Send what the outbox still holds; in the embedded mode also reconcile (with Celery,
-    beat does that)."""
-    from worker.reconcile import reconcile
-    from worker.run import runtime_cleaners
-
-    cleaners = runtime_cleaners(settings)
-    passes = 0
+def _sweep(dispatcher: Dispatcher, stop: threading.Event) -> None:
+    """Send what the outbox still holds (a broker outage, a crash between commit and send)."""
     while not stop.wait(SWEEP_INTERVAL_S):
         dispatcher.dispatch()
-        passes += 1
-        if inline is not None and passes % RECONCILE_EVERY == 0:
-            try:
-                reconcile(sessions, inline, cleaners=cleaners)
-            except Exception:
-                log.exception("reconciling failed; the next pass will try again")

@@ -1,5 +1,6 @@
-"""Operator commands: `manieval serve`, `manieval db upgrade`, `manieval admin create`,
-`manieval challenge load`."""
+"""Operator commands of the server: `manieval db upgrade`, `manieval admin create`,
+`manieval challenge load` (`manieval serve` and `demo` compose it with the worker:
+`manieval/serve.py`)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from typing import Annotated
 import typer
 from pydantic import ValidationError
 from rich.console import Console
+from sqlalchemy.orm import Session, sessionmaker
 
 from evaluator.suite import SuiteError
 from server.kit.errors import AppError
@@ -32,53 +34,12 @@ def settings() -> Settings:
         raise typer.Exit(2) from None
 
 
-def _sessions(s: Settings):  # type: ignore[no-untyped-def]
+def migrated_sessions(s: Settings) -> sessionmaker[Session]:
+    """Sessions of the configured database, after bringing its schema up to date."""
     from server.kit.db import make_engine, session_factory, upgrade
 
     upgrade(s.resolved_database_url)
     return session_factory(make_engine(s.resolved_database_url))
-
-
-def serve(
-    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(min=1, max=65535)] = 8000,
-    migrate: Annotated[
-        bool,
-        typer.Option(
-            help="Bring the schema up to date first. With --no-migrate (several replicas, a "
-            "migration Job) the server refuses to start on a schema that is not current."
-        ),
-    ] = True,
-) -> None:
-    """Run the API with its embedded worker (migrating the database first)."""
-    import uvicorn
-
-    from server.app import create_app
-    from server.kit.observability import configure_logging
-
-    s = settings()
-    configure_logging(s.log_format, s.log_level)
-    if migrate:
-        sessions = _sessions(s)
-    else:
-        from server.kit.db import make_engine, schema_problem, session_factory
-
-        problem = schema_problem(s.resolved_database_url)
-        if problem is not None:
-            console.print(f"[red]cannot start:[/] {problem}")
-            raise typer.Exit(3)
-        sessions = session_factory(make_engine(s.resolved_database_url))
-    console.print(f"ManiEval on http://{host}:{port}  (data: {s.data_dir}, docs: /docs)")
-    app = create_app(s, sessions=sessions)
-    # Open live streams (server-sent events) must not hold a Ctrl-C for long.
-    uvicorn.run(
-        app,
-        host=host,
-        port=port,
-        log_config=None,
-        proxy_headers=True,
-        timeout_graceful_shutdown=5,
-    )
 
 
 @db_app.command("upgrade")
@@ -106,7 +67,7 @@ def admin_create(
     from server.models import User
 
     s = settings()
-    sessions = _sessions(s)
+    sessions = migrated_sessions(s)
     with sessions.begin() as db:
         existing = db.scalar(select(User).where(User.username == username))
         if existing is not None:
@@ -172,7 +133,7 @@ def challenge_load(
         closes=_dates(closes, "--closes"),
         episodes=episodes,
     )
-    sessions = _sessions(s)
+    sessions = migrated_sessions(s)
     try:
         with sessions.begin() as db:
             challenge = load_challenge(
@@ -189,26 +150,3 @@ def challenge_load(
     console.print(f"challenge {slug} loaded")
     for name, commitment in phases:
         console.print(f"  phase {name}: seed commitment {commitment}")
-
-
-def demo(
-    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(min=1, max=65535)] = 8000,
-    episodes: Annotated[int, typer.Option(min=1, help="Episodes per task.")] = 3,
-    exit_when_done: Annotated[
-        bool, typer.Option(help="Stop once the example policies are evaluated.")
-    ] = False,
-) -> None:
-    """Run the service locally with the example policies evaluated on the leaderboard."""
-    import os
-
-    from server.demo import run_demo
-
-    os.environ.setdefault("MANIEVAL_DEV_MODE", "true")
-    os.environ.setdefault("MANIEVAL_ALLOW_LOCAL_POLICIES", "true")
-    os.environ.setdefault("MANIEVAL_COOKIE_SECURE", "false")
-    os.environ.setdefault("MANIEVAL_INLINE_WORKERS", str(min(2, os.cpu_count() or 1)))
-    code = run_demo(
-        settings(), host=host, port=port, episodes=episodes, exit_when_done=exit_when_done
-    )
-    raise typer.Exit(code)

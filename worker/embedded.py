@@ -1,4 +1,5 @@
-"""The embedded queue: worker threads inside the server process (`MANIEVAL_QUEUE=inline`)."""
+"""The embedded worker: threads inside the server's process (`MANIEVAL_QUEUE=inline`) that
+take wake-ups from an in-memory queue and reach the server through ``/internal/v1``."""
 
 from __future__ import annotations
 
@@ -7,7 +8,13 @@ import queue
 import threading
 from collections.abc import Callable
 
+from worker.reconcile import reconcile_pass, runtime_cleaners
+from worker.run import run_next
+from worker.server_api import ServerAPI
+from worker.settings import WorkerSettings
+
 log = logging.getLogger(__name__)
+RECONCILE_EVERY_S = 30.0
 
 
 class InlineQueue:
@@ -41,12 +48,14 @@ class InlineQueue:
             self.idle.clear()
             self._queue.put((submission_id, attempt))
 
-    def stop(self, timeout: float | None = None) -> None:
+    def stop(self, timeout: float | None = None) -> bool:
+        """Let the threads finish what they run; True when all have (within `timeout` each)."""
         if self._started:
             for _ in self._threads:
                 self._queue.put(None)
             for thread in self._threads:
                 thread.join(timeout)
+        return not any(thread.is_alive() for thread in self._threads)
 
     def _loop(self) -> None:
         while True:
@@ -64,3 +73,61 @@ class InlineQueue:
                     self._busy -= 1
                     if self._busy == 0 and self._queue.empty():
                         self.idle.set()
+
+
+class EmbeddedWorker:
+    """The embedded default's worker: threads in the server's process that reach the server
+    through ``/internal/v1``, exactly as a Celery worker on another machine does.
+
+    `queue` is the server's work queue (its outbox sends wake-ups into it); `start()` once the
+    server answers: it sends what an earlier run kept in the spool, ends the attempts that died
+    with that run (they run again once), then drains the queue and reconciles every 30 s.
+    """
+
+    def __init__(self, settings: WorkerSettings, *, threads: int = 1) -> None:
+        self.settings = settings
+        self.queue = InlineQueue(self._drain, threads=threads)
+        self._api: ServerAPI | None = None
+        self._stop = threading.Event()
+        self._timer = threading.Thread(
+            target=self._reconcile, name="manieval-reconcile", daemon=True
+        )
+
+    def start(self, api: ServerAPI | None = None) -> None:
+        """Connect (`api`: tests hand one over an in-process transport) and start working."""
+        self._api = api or ServerAPI.connect(self.settings)
+        self._api.stop = self._stop
+        self._api.flush_spool()
+        ended = self._api.restarted(self.settings.worker_name)
+        if ended:
+            log.info("submissions %s were running when the server stopped: queued again", ended)
+        self.queue.start()
+        self.queue.enqueue(0, 0)  # whatever waits already
+        self._timer.start()
+
+    def stop(self, timeout: float | None = None) -> None:
+        self._stop.set()
+        finished = self.queue.stop(timeout)
+        # A thread still evaluating keeps the client until the process ends: closed under it,
+        # its next report would fail and end the attempt `error` through the spool at the next
+        # start, instead of the restart running it again.
+        if self._api is not None and finished:
+            self._api.close()
+
+    @property
+    def api(self) -> ServerAPI:
+        assert self._api is not None, "start() first"
+        return self._api
+
+    def _drain(self, _sid: int, _attempt: int) -> None:
+        # A message is a wake-up: run the fairest queued submissions until none can be claimed.
+        while not self._stop.is_set() and run_next(self.api, self.settings) is not None:
+            pass
+
+    def _reconcile(self) -> None:
+        cleaners = runtime_cleaners(self.settings)
+        while not self._stop.wait(RECONCILE_EVERY_S):
+            try:
+                reconcile_pass(self.api, cleaners=cleaners)
+            except Exception:
+                log.exception("reconciling failed; the next pass will try again")

@@ -85,7 +85,11 @@ class Spool:
         self.directory.mkdir(parents=True, exist_ok=True, mode=0o700)
         path = self._path(submission_id, attempt)
         tmp = path.with_suffix(".tmp")
-        body = {"submission_id": submission_id, "attempt": attempt, "report": report.model_dump()}
+        body = {
+            "submission_id": submission_id,
+            "attempt": attempt,
+            "report": report.model_dump(mode="json"),
+        }
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "w") as f:
             json.dump(body, f)

@@ -7,14 +7,15 @@ in ``docs/server.md`` (Workers).
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Any, Literal
 
 import platformdirs
 from pydantic import Field, SecretStr, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 
 def _default_data_dir() -> Path:
@@ -71,10 +72,44 @@ class WorkerSettings(BaseSettings):
     evaluator_cpu: str = "2"
     evaluator_memory: str = "4Gi"
     k8s_runtime_class: str | None = None
+    k8s_node_selector: Annotated[dict[str, str], NoDecode] = Field(default_factory=dict)
+    """The eval pods' nodeSelector, as JSON (``{"pool": "eval"}``) or ``key=value,...``: keep
+    participant code on its own node pool."""
+    k8s_tolerations: list[dict[str, str | int]] = Field(default_factory=list)
+    """The eval pods' tolerations, as JSON (``[{"key": "manieval.io/eval", "operator":
+    "Exists", "effect": "NoSchedule"}]``): for a tainted evaluation node pool."""
+    k8s_priority_class: str | None = None
+    """The eval pods' PriorityClass (a low one lets the cluster's own pods preempt them)."""
+    k8s_image_pull_secrets: Annotated[tuple[str, ...], NoDecode] = ()
+    """Secrets in the evaluation namespace for pulling images, comma-separated (or JSON)."""
     k8s_poll_interval: float = Field(default=5.0, gt=0, le=300)
+    k8s_pending_timeout_s: float = Field(default=600.0, gt=0)
+    """How long an evaluation's pods may stay unscheduled, pending or uncreated (a
+    ResourceQuota refusing them) before the attempt ends ``error``: the cluster's fault."""
 
     log_format: Literal["text", "json"] = "text"
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+
+    @field_validator("k8s_node_selector", mode="before")
+    @classmethod
+    def _pairs(cls, value: Any) -> Any:
+        if not isinstance(value, str):
+            return value
+        if value.strip().startswith("{"):
+            return json.loads(value)
+        pairs = [p.strip() for p in value.split(",") if p.strip()]
+        if any("=" not in p for p in pairs):
+            raise ValueError("MANIEVAL_K8S_NODE_SELECTOR is JSON or key=value,...")
+        return dict(p.split("=", 1) for p in pairs)
+
+    @field_validator("k8s_image_pull_secrets", mode="before")
+    @classmethod
+    def _names(cls, value: Any) -> Any:
+        if not isinstance(value, str):
+            return value
+        if value.strip().startswith("["):
+            return json.loads(value)
+        return tuple(n.strip() for n in value.split(",") if n.strip())
 
     @field_validator("server_url")
     @classmethod

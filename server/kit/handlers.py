@@ -7,12 +7,15 @@ import logging
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from sqlalchemy.exc import InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from server.kit import pages
 from server.kit.errors import AppError, ErrorBody, ErrorDetail
 
 log = logging.getLogger(__name__)
+DATABASE_RETRY_AFTER_S = 5
 
 TITLES = {
     401: "Please log in",
@@ -59,6 +62,20 @@ def install_error_handlers(app: FastAPI) -> None:
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
         detail = ErrorDetail(code=code, message=str(exc.detail))
         return respond(request, exc.status_code, detail, getattr(exc, "headers", None))
+
+    @app.exception_handler(OperationalError)
+    @app.exception_handler(InterfaceError)
+    @app.exception_handler(PoolTimeout)
+    async def database_unavailable(request: Request, exc: Exception) -> Response:
+        # Not a bug and not the client's fault: the database is down or restarting. Clients
+        # (the CLI, workers) retry after Retry-After; the log keeps one line, not a traceback.
+        log.warning(
+            "the database is unavailable: %s", str(exc).splitlines()[0] if str(exc) else exc
+        )
+        detail = ErrorDetail(
+            code="unavailable", message="the database is unavailable; try again shortly"
+        )
+        return respond(request, 503, detail, {"Retry-After": str(DATABASE_RETRY_AFTER_S)})
 
     @app.exception_handler(Exception)
     async def crash(request: Request, exc: Exception) -> Response:

@@ -10,14 +10,11 @@ HTTP metrics are per process, labelled by route template (never by raw path: bou
 from __future__ import annotations
 
 import hmac
-import json
 import logging
-import sys
 import threading
 import time
 from collections.abc import Awaitable, Callable, Iterable, Iterator
 from datetime import timedelta
-from typing import Any
 
 from fastapi import FastAPI
 from fastapi.responses import JSONResponse
@@ -237,41 +234,3 @@ def broker_problem(settings: Settings) -> str | None:
     except Exception as exc:
         return str(exc) or type(exc).__name__
     return None
-
-
-class JsonFormatter(logging.Formatter):
-    """One JSON object per line: time, level, logger, message, and the exception if any."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        entry: dict[str, Any] = {
-            "time": self.formatTime(record, "%Y-%m-%dT%H:%M:%S") + f".{int(record.msecs):03d}Z",
-            "level": record.levelname.lower(),
-            "logger": record.name,
-            "message": record.getMessage(),
-        }
-        if record.exc_info:
-            entry["exception"] = self.formatException(record.exc_info)
-        for key in ("submission_id", "attempt"):
-            if hasattr(record, key):
-                entry[key] = getattr(record, key)
-        return json.dumps(entry, ensure_ascii=False, default=str)
-
-
-JsonFormatter.converter = time.gmtime
-
-
-def configure_logging(log_format: str, level: str = "INFO") -> None:
-    """Send every log record (uvicorn's, Celery's, ours) to stderr as text or JSON lines."""
-    handler = logging.StreamHandler(sys.stderr)
-    if log_format == "json":
-        handler.setFormatter(JsonFormatter())
-    else:
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
-    root.setLevel(level.upper())
-    for name in ("uvicorn", "uvicorn.error", "uvicorn.access", "celery"):
-        logger = logging.getLogger(name)
-        logger.handlers[:] = []
-        logger.setLevel(logging.NOTSET)  # the root's level decides, whoever configured it before
-        logger.propagate = True

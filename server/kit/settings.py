@@ -52,7 +52,11 @@ class Settings(BaseSettings):
     """Derives the hidden test-phase seeds; required outside dev mode."""
 
     worker_token: SecretStr | None = None
-    """Bearer token the worker presents to the internal results API (never given to a policy)."""
+    """Bearer token workers present to the internal API, ``/internal/v1`` (never given to a
+    policy); required outside dev mode."""
+
+    worker_token_next: SecretStr | None = None
+    """During a rotation, a second accepted worker token (docs/server.md, Architecture)."""
 
     allowed_registries: CommaList = Field(default_factory=lambda: ["127.0.0.1:5000"])
     """Registries submissions may name (domain[:port]), comma-separated."""
@@ -68,43 +72,15 @@ class Settings(BaseSettings):
     """Accept ``local:NAME`` submissions of the bundled example policies (demo only)."""
 
     queue: Literal["inline", "celery"] = "inline"
-    """``inline``: worker threads in the server process (embedded default, no Redis);
+    """``inline``: the embedded worker's threads in the server process (embedded default, no
+    Redis);
     ``celery``: Celery workers on Redis (``manieval`` in k8s/, docs/deploy.md)."""
 
     broker_url: str = "redis://127.0.0.1:6379/0"
     celery_queue: str = "manieval"
 
-    docker_engine_url: str | None = None
-    """Docker-API engine that runs policy images (Docker, or Podman's API service, e.g.
-    ``unix:///run/manieval/podman.sock``); unset: image submissions end ``error``."""
-
-    policy_memory_mib: int = Field(default=2048, ge=64)
-    policy_cpus: float = Field(default=1.0, gt=0)
-
-    executor: Literal["docker", "kubernetes"] = "docker"
-    """Where policy images run: ``docker`` (the engine above, evaluator in the worker) or
-    ``kubernetes`` (one Job per attempt, evaluator and policy in its pod). Bundled
-    ``local:`` policies always run in the worker, when allowed."""
-
-    k8s_namespace: str = "manieval-eval"
-    """The namespace evaluation Jobs run in (Pod Security "restricted", default-deny network)."""
-    k8s_in_cluster: bool = False
-    """Authenticate with the pod's service account; otherwise a kubeconfig is used."""
-    k8s_kubeconfig: Path | None = None
-    """The kubeconfig file (default: ``$KUBECONFIG`` or ``~/.kube/config``)."""
-    k8s_api_url: str | None = None
-    """Talk to this API URL without credentials (``kubectl proxy``; the tests' double)."""
-    evaluator_image: str | None = None
-    """The evaluator image the Jobs run (``docker/evaluator``), ideally pinned by digest."""
-    evaluator_cpu: str = "2"
-    evaluator_memory: str = "4Gi"
-    k8s_runtime_class: str | None = None
-    """RuntimeClass of evaluation pods, e.g. ``gvisor`` (sandboxes the policy's syscalls)."""
-    k8s_poll_interval: float = Field(default=5.0, gt=0, le=300)
-    """Seconds between looks at a running Job (status, progress, image pulls)."""
-
     inline_workers: int = Field(default=1, ge=1, le=64)
-    """Evaluations the embedded server runs at once."""
+    """Evaluations the embedded worker runs at once."""
 
     max_running_per_user: int = Field(default=2, ge=1, le=1000)
     """Evaluations of one participant running at once, across challenges (fairness)."""
@@ -143,6 +119,9 @@ class Settings(BaseSettings):
                     f"MANIEVAL_{name.upper()} must be set to at least 32 characters "
                     "(or MANIEVAL_DEV_MODE=true for a local try-out, which generates it)"
                 )
+        nxt = self.worker_token_next
+        if nxt is not None and len(nxt.get_secret_value()) < 32:
+            raise ValueError("MANIEVAL_WORKER_TOKEN_NEXT must be at least 32 characters")
         for name in ("register_rate", "login_rate", "token_rate", "submit_rate"):
             Rate.parse(getattr(self, name))
         return self

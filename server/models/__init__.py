@@ -7,17 +7,16 @@ Alembic migrations in ``alembic/versions`` are the only way this schema reaches 
 ``alembic check`` in the tests proves the two agree.
 """
 
+from internal_api.schemas import ACTIVE_STATES, FINAL_STATES, State
 from server.models.accounts import ApiToken, Session, User
 from server.models.base import NAMING, Base, UTCDateTime, utcnow
 from server.models.challenges import Challenge, Phase
 from server.models.leaderboard import LeaderboardEntry
 from server.models.submissions import (
-    ACTIVE_STATES,
-    FINAL_STATES,
     QUOTA_STATES,
+    Cause,
     EpisodeResultRow,
     Outbox,
-    State,
     Submission,
     TaskResultRow,
     Transition,
@@ -30,6 +29,7 @@ __all__ = [
     "QUOTA_STATES",
     "ApiToken",
     "Base",
+    "Cause",
     "Challenge",
     "EpisodeResultRow",
     "LeaderboardEntry",

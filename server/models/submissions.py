@@ -22,35 +22,28 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
+from internal_api.schemas import State
 from server.models.accounts import User
 from server.models.base import Base, utcnow
 from server.models.challenges import Challenge, Phase
 
 
-class State(enum.StrEnum):
-    QUEUED = "queued"
-    LAUNCHING = "launching"
-    RUNNING = "running"
-    SUCCEEDED = "succeeded"
-    FAILED = "failed"  # the policy's fault
-    ERROR = "error"  # ours
-    CANCELLED = "cancelled"
-    TIMED_OUT = "timed_out"
+class Cause(enum.StrEnum):
+    """Why an attempt ended `error` through no fault of the policy's, where the reconciler acts
+    on it (a lost attempt runs again once): a typed column, never text to match."""
 
-    @property
-    def final(self) -> bool:
-        return self in FINAL_STATES
+    WORKER_LOST = "worker_lost"
+    WORKER_RESTARTED = "worker_restarted"
 
 
-FINAL_STATES = frozenset(
-    {State.SUCCEEDED, State.FAILED, State.ERROR, State.CANCELLED, State.TIMED_OUT}
-)
-ACTIVE_STATES = frozenset({State.QUEUED, State.LAUNCHING, State.RUNNING})
 # What counts against a quota: work the participant caused. Our errors and cancels do not.
 QUOTA_STATES = frozenset({State.RUNNING, State.SUCCEEDED, State.FAILED, State.TIMED_OUT})
 
 _state_enum = Enum(
     State, name="submission_state", values_callable=lambda e: [m.value for m in e], length=16
+)
+_cause_enum = Enum(
+    Cause, name="transition_cause", values_callable=lambda e: [m.value for m in e], length=32
 )
 
 
@@ -85,6 +78,8 @@ class Submission(Base):
     finished_at: Mapped[datetime | None]
     heartbeat_at: Mapped[datetime | None]
     deadline_at: Mapped[datetime | None]
+    worker: Mapped[str | None] = mapped_column(String(200))
+    """The worker that claimed the current attempt (its `MANIEVAL_WORKER_NAME`)."""
     score: Mapped[float | None] = mapped_column(Float)
     progress: Mapped[dict[str, Any] | None]
     """The worker's last progress report: episodes done and planned, current task."""
@@ -108,6 +103,7 @@ class Transition(Base):
     from_state: Mapped[State | None] = mapped_column(_state_enum)
     to_state: Mapped[State] = mapped_column(_state_enum)
     reason: Mapped[str] = mapped_column(String(2000), default="")
+    cause: Mapped[Cause | None] = mapped_column(_cause_enum)
     at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
@@ -137,7 +133,8 @@ class EpisodeResultRow(Base):
     index: Mapped[int] = mapped_column(Integer)
     seed: Mapped[int] = mapped_column(BigInteger)
     success_once: Mapped[bool] = mapped_column(Boolean)
-    success_at_end: Mapped[bool] = mapped_column(Boolean)
+    success_at_end: Mapped[bool | None] = mapped_column(Boolean)
+    """None: not measured (the suite stops an episode at its first success)."""
     steps: Mapped[int] = mapped_column(Integer)
     episode_return: Mapped[float] = mapped_column(Float)
     wall_time_s: Mapped[float] = mapped_column(Float)

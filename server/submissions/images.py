@@ -18,6 +18,7 @@ from typing import Any, Protocol
 
 import httpx
 
+from evaluator.bundled import LOCAL_PREFIX, bundled_policies
 from server.kit.errors import Invalid, Unavailable
 from server.kit.settings import Settings
 from server.submissions.image_refs import (
@@ -35,7 +36,7 @@ from server.submissions.image_refs import (
     check_digest,
     parse_reference,
 )
-from server.submissions.service import LOCAL_PREFIX, Resolved, Resolver
+from server.submissions.service import Resolved, Resolver
 
 OCI_INDEX = "application/vnd.oci.image.index.v1+json"
 OCI_MANIFEST = "application/vnd.oci.image.manifest.v1+json"
@@ -78,15 +79,13 @@ def image_resolver(settings: Settings, registry: Registry | None = None) -> Reso
 
 
 def _resolve_local(image: str, settings: Settings) -> Resolved:
-    from worker.run import local_policies
-
     if not settings.allow_local_policies:
         raise Invalid(
             "this server does not accept local policies",
             fields={"image": "submit a container image reference"},
         )
     name = image.removeprefix(LOCAL_PREFIX)
-    known = local_policies()
+    known = bundled_policies()
     if name not in known:
         raise Invalid(
             f"no bundled policy {name!r}", fields={"image": f"one of: {', '.join(sorted(known))}"}

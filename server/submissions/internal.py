@@ -1,8 +1,11 @@
-"""The internal API workers report to, ``/internal/v1`` (not in the public OpenAPI document).
+"""The internal API workers call, ``/internal/v1`` (not in the public OpenAPI document).
 
-Authenticated by the worker token (``MANIEVAL_WORKER_TOKEN``), which lives only in the worker's
-environment: policy containers never receive it, and have no network to use it on anyway.
-Every report names its (submission, attempt) and is idempotent.
+Authenticated by the worker token (``MANIEVAL_WORKER_TOKEN``, and during a rotation also
+``MANIEVAL_WORKER_TOKEN_NEXT``), which lives only in the workers' environment: policy
+containers never receive it, and have no network to use it on anyway. A worker holds no
+database URL and no server secret: it claims work, is handed the evaluation with its concrete
+seeds, and reports through here. Every report names its (submission, attempt) and is
+idempotent (`reports.py`).
 """
 
 from __future__ import annotations
@@ -10,68 +13,134 @@ from __future__ import annotations
 import hmac
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Request
-from pydantic import ValidationError
+from fastapi import APIRouter, Depends, Path, Request, Response
+from fastapi.responses import JSONResponse
 
-from evaluator.results import EvaluationResult
+from internal_api.schemas import (
+    Assignment,
+    ClaimIn,
+    FinalReport,
+    ProgressReport,
+    ReconcileOut,
+    ReportOut,
+    RestartOut,
+    RunningReport,
+    Silent,
+    State,
+)
 from server.kit.deps import DBDep, services
-from server.kit.errors import Invalid, Unauthorized
-from server.submissions.reports import current_state, report_final, report_progress, report_state
-from server.submissions.schemas import FinalReport, ProgressReport, ReportOut, StateReport
+from server.kit.errors import Unauthorized
+from server.submissions.reconcile import reconcile, silent
+from server.submissions.reports import (
+    current_state,
+    report_final,
+    report_progress,
+    report_running,
+)
+from server.submissions.work import assignment, claim_next, end_restarted
 
 Id = Annotated[int, Path(ge=1, le=2**31 - 1)]
+WorkerName = Annotated[str, Path(min_length=1, max_length=200, pattern=r"^[\x21-\x7e]+$")]
 
 
 def require_worker(request: Request) -> None:
-    expected = services(request).settings.secret("worker_token")
+    """The worker token, compared in constant time; user tokens and sessions do not open it."""
+    settings = services(request).settings
     scheme, _, value = request.headers.get("authorization", "").partition(" ")
-    if scheme.lower() != "bearer" or not hmac.compare_digest(value.encode(), expected.encode()):
+    sent = value.encode("utf-8", "surrogateescape")
+    accepted = [settings.secret("worker_token")]
+    if settings.worker_token_next is not None:
+        accepted.append(settings.worker_token_next.get_secret_value())
+    matches = [hmac.compare_digest(sent, token.encode()) for token in accepted]
+    if scheme.lower() != "bearer" or not any(matches):
         raise Unauthorized("worker token required")
 
 
 router = APIRouter(
-    prefix="/internal/v1/submissions/{submission_id}/attempts/{attempt}",
-    include_in_schema=False,
-    dependencies=[Depends(require_worker)],
+    prefix="/internal/v1", include_in_schema=False, dependencies=[Depends(require_worker)]
 )
+ATTEMPT = "/submissions/{submission_id}/attempts/{attempt}"
 
 
-def _out(db: DBDep, submission_id: Id, applied: bool) -> ReportOut:
+def _out(db: DBDep, submission_id: int, applied: bool) -> ReportOut:
     return ReportOut(applied=applied, state=current_state(db, submission_id=submission_id))
 
 
-@router.post("/state")
-def post_state(submission_id: Id, attempt: Id, body: StateReport, db: DBDep) -> ReportOut:
-    applied = report_state(db, submission_id, attempt, body.state, body.reason)
-    db.commit()
-    return _out(db, submission_id, applied)
-
-
-@router.post("/progress")
-def post_progress(submission_id: Id, attempt: Id, body: ProgressReport, db: DBDep) -> ReportOut:
-    applied = report_progress(db, submission_id, attempt, dict(body.progress))
-    db.commit()
-    return _out(db, submission_id, applied)
-
-
-@router.post("/final")
-def post_final(
-    submission_id: Id, attempt: Id, body: Annotated[FinalReport, ...], db: DBDep
-) -> ReportOut:
-    result = None
-    if body.result is not None:
+@router.post("/claims", response_model=Assignment, responses={204: {"description": "no work"}})
+def claim(body: ClaimIn, request: Request, db: DBDep) -> Response:
+    """Claim the fairest queued submission: 200 with its evaluation, or 204."""
+    settings = services(request).settings
+    seed_secret = settings.secret("seed_secret").encode()
+    while True:
+        claimed = claim_next(
+            db, worker=body.worker, max_running_per_user=settings.max_running_per_user, commit=False
+        )
+        if claimed is None:
+            return Response(status_code=204)
+        sid, attempt = claimed
         try:
-            result = EvaluationResult.model_validate(body.result)
-        except ValidationError as exc:
-            raise Invalid(f"the result document does not validate: {exc}") from None
+            handed = assignment(db, submission_id=sid, attempt=attempt, seed_secret=seed_secret)
+        except ValueError as exc:  # a suite this version cannot plan: ours, with the reason
+            report_final(db, sid, attempt, State.ERROR, f"cannot run: {exc}")
+            db.commit()
+            continue
+        # The claim is committed with its evaluation in hand: if the database fails before
+        # this, the worker's retry finds the submission still queued (not orphaned `launching`).
+        db.commit()
+        return JSONResponse(handed.model_dump(mode="json"))
+
+
+@router.get(ATTEMPT)
+def get_assignment(submission_id: Id, attempt: Id, request: Request, db: DBDep) -> Assignment:
+    """A running attempt's evaluation again, for a new watcher of its Kubernetes Job."""
+    secret = services(request).settings.secret("seed_secret").encode()
+    return assignment(db, submission_id=submission_id, attempt=attempt, seed_secret=secret)
+
+
+@router.post(f"{ATTEMPT}/running")
+def post_running(submission_id: Id, attempt: Id, body: RunningReport, db: DBDep) -> ReportOut:
+    applied = report_running(
+        db, submission_id, attempt, reason=body.reason, deadline_s=body.deadline_s
+    )
+    db.commit()
+    return _out(db, submission_id, applied)
+
+
+@router.post(f"{ATTEMPT}/progress")
+def post_progress(submission_id: Id, attempt: Id, body: ProgressReport, db: DBDep) -> ReportOut:
+    applied = report_progress(db, submission_id, attempt, body.progress)
+    db.commit()
+    return _out(db, submission_id, applied)
+
+
+@router.post(f"{ATTEMPT}/final")
+def post_final(submission_id: Id, attempt: Id, body: FinalReport, db: DBDep) -> ReportOut:
     applied = report_final(
         db,
         submission_id,
         attempt,
         body.state,
         body.reason,
-        result=result,
+        result=body.result,
         log_tail=body.log_tail,
     )
     db.commit()
     return _out(db, submission_id, applied)
+
+
+@router.get("/attempts/silent")
+def get_silent(db: DBDep) -> Silent:
+    return Silent(attempts=silent(db))
+
+
+@router.post("/reconcile")
+def post_reconcile(request: Request) -> ReconcileOut:
+    svc = services(request)
+    return reconcile(svc.sessions, svc.dispatcher.work)
+
+
+@router.post("/workers/{worker}/restarted")
+def post_restarted(worker: WorkerName, db: DBDep) -> RestartOut:
+    ended = end_restarted(db, worker=worker)
+    db.commit()
+    return RestartOut(ended=ended)

@@ -7,13 +7,16 @@ broker outage between the commit and the send delays the work but never loses it
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 from typing import Protocol
 
+from celery import Celery
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from internal_api.tasks import RUN_NEXT
 from server.models import Outbox, utcnow
 
 log = logging.getLogger(__name__)
@@ -29,6 +32,10 @@ class Dispatcher:
         self._sessions = sessions
         self._work = work
         self._lock = threading.Lock()
+
+    @property
+    def work(self) -> WorkQueue:
+        return self._work
 
     def dispatch(self, batch: int = 100) -> int:
         """Send pending rows in order; returns how many were sent. Never raises."""
@@ -57,3 +64,36 @@ class Dispatcher:
                 self._work.enqueue(row.submission_id, row.attempt)
                 row.sent_at = utcnow()
             return len(rows)
+
+
+class CeleryQueue:
+    """Wake-ups to the Celery workers through the broker, by task name: the server never
+    imports the worker."""
+
+    def __init__(self, broker_url: str, queue: str) -> None:
+        self._app = _celery_for(broker_url, queue)
+
+    def enqueue(self, submission_id: int, attempt: int) -> None:
+        self._app.send_task(RUN_NEXT, args=[submission_id, attempt])
+
+
+class Unattached:
+    """The embedded default before its worker is attached (`manieval serve` attaches it):
+    work stays in the outbox until then."""
+
+    def enqueue(self, submission_id: int, attempt: int) -> None:
+        raise RuntimeError("no worker is attached to this server yet")
+
+
+@functools.cache
+def _celery_for(broker_url: str, queue: str) -> Celery:
+    celery = Celery("manieval-server", broker=broker_url)
+    celery.conf.update(
+        task_default_queue=queue,
+        task_serializer="json",
+        accept_content=["json"],
+        broker_connection_retry_on_startup=True,
+        broker_connection_timeout=5,
+        broker_transport_options={"max_retries": 2},
+    )
+    return celery

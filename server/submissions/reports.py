@@ -7,6 +7,7 @@ submission's current one is refused (`Conflict`), so a late worker cannot overwr
 
 from __future__ import annotations
 
+from datetime import timedelta
 from typing import Any
 
 from sqlalchemy import delete, update
@@ -49,9 +50,32 @@ def report_state(db: DB, submission_id: int, attempt: int, state: State, reason:
     return transition(db, submission_id, attempt, state, reason)
 
 
-def report_progress(db: DB, submission_id: int, attempt: int, progress: dict[str, Any]) -> bool:
-    """Heartbeat and progress of a running attempt; False if it is not running any more."""
+def report_running(
+    db: DB, submission_id: int, attempt: int, *, reason: str, deadline_s: float
+) -> bool:
+    """`launching` -> `running`, with the deadline after which the reconciler times it out.
+    False when the attempt no longer runs (cancelled meanwhile)."""
+    if not report_state(db, submission_id, attempt, State.RUNNING, reason):
+        return False
+    db.execute(
+        update(Submission)
+        .where(Submission.id == submission_id, Submission.attempt == attempt)
+        .values(deadline_at=utcnow() + timedelta(seconds=deadline_s))
+        .execution_options(synchronize_session=False)
+    )
+    return True
+
+
+def report_progress(
+    db: DB, submission_id: int, attempt: int, progress: dict[str, Any] | None
+) -> bool:
+    """Heartbeat and progress of a running attempt (None: a heartbeat only); False if it is
+    not running any more."""
+    _current(db, submission_id, attempt)
     now = utcnow()
+    values: dict[str, Any] = {"heartbeat_at": now, "updated_at": now}
+    if progress is not None:
+        values["progress"] = progress
     result = db.execute(
         update(Submission)
         .where(
@@ -59,7 +83,7 @@ def report_progress(db: DB, submission_id: int, attempt: int, progress: dict[str
             Submission.attempt == attempt,
             Submission.state.in_([State.LAUNCHING, State.RUNNING]),
         )
-        .values(heartbeat_at=now, progress=progress, updated_at=now)
+        .values(**values)
         .execution_options(synchronize_session=False)
     )
     return bool(result.rowcount == 1)  # type: ignore[attr-defined]

@@ -78,7 +78,8 @@ class EpisodeOut(BaseModel):
     index: int
     seed: int | None = Field(description="null in phases whose seeds are secret")
     success_once: bool
-    success_at_end: bool
+    success_at_end: bool | None
+    """None: not measured (the suite stops an episode at its first success)."""
     steps: int
     episode_return: float
     wall_time_s: float
@@ -91,27 +92,3 @@ class LogsOut(BaseModel):
     submission_id: int
     attempt: int
     log_tail: str
-
-
-# Internal (worker) API ------------------------------------------------------------------------
-
-
-class StateReport(InBody):
-    state: State
-    reason: str = Field(max_length=2000)
-
-
-class ProgressReport(InBody):
-    progress: dict[str, int | float | str]
-
-
-class FinalReport(InBody):
-    state: State
-    reason: str = Field(max_length=2000)
-    result: dict[str, object] | None = None
-    log_tail: str = Field(default="", max_length=1 << 20)
-
-
-class ReportOut(BaseModel):
-    applied: bool
-    state: State

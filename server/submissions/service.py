@@ -39,7 +39,6 @@ QUOTA_HOLDING = frozenset(
     {State.QUEUED, State.LAUNCHING, State.RUNNING, State.SUCCEEDED, State.FAILED, State.TIMED_OUT}
 )
 DAY = timedelta(days=1)
-LOCAL_PREFIX = "local:"
 
 
 @dataclass(frozen=True)
@@ -351,29 +350,3 @@ def episode_rows(
         .limit(per_page)
     ).all()
     return [(row, condition, env_id) for row, condition, env_id in rows], total
-
-
-# The embedded server's restart ----------------------------------------------------------------
-
-
-def end_interrupted(db: DB) -> list[tuple[int, int]]:
-    """After a restart of the embedded server: runs it had in flight died with it (ended
-    `error`, which burns no quota, so the owner may resubmit). Returns the queued attempts,
-    oldest first, to send to the queue again."""
-    running = db.scalars(
-        select(Submission).where(Submission.state.in_([State.LAUNCHING, State.RUNNING]))
-    ).all()
-    for s in running:
-        transition(
-            db,
-            s.id,
-            s.attempt,
-            State.ERROR,
-            "the server stopped during the evaluation; submit again or ask for a re-run",
-        )
-    pending = db.execute(
-        select(Submission.id, Submission.attempt)
-        .where(Submission.state == State.QUEUED)
-        .order_by(Submission.id)
-    ).all()
-    return [(sid, attempt) for sid, attempt in pending]

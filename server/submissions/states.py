@@ -16,7 +16,7 @@ from sqlalchemy import update
 from sqlalchemy.orm import Session as DB
 
 from server.leaderboard.service import refresh
-from server.models import FINAL_STATES, Outbox, State, Submission, Transition, utcnow
+from server.models import FINAL_STATES, Cause, Outbox, State, Submission, Transition, utcnow
 
 # Which states each state may move to (re-run, a new attempt, is separate: final -> queued).
 ALLOWED: dict[State, frozenset[State]] = {
@@ -43,9 +43,11 @@ def transition(
     reason: str,
     *,
     now: datetime | None = None,
+    cause: Cause | None = None,
     **values: Any,
 ) -> bool:
-    """Move the submission to `to` if its current attempt is in a state that allows it.
+    """Move the submission to `to` if its current attempt is in a state that allows it;
+    `cause` is recorded with the transition, `values` set on the submission.
 
     Returns False (and changes nothing) when another actor got there first.
     """
@@ -80,6 +82,7 @@ def transition(
             from_state=previous,
             to_state=to,
             reason=reason[:2000],
+            cause=cause,
             at=now,
         )
     )

@@ -34,8 +34,8 @@ STARTUP_SECONDS = 90.0
 CRASHER = "import sys\nprint('loading weights... out of luck', file=sys.stderr)\nsys.exit(3)\n"
 # Patches the directory of `local:` policies, then runs `manieval serve`.
 LAUNCHER = (
-    "import sys, pathlib, worker.run\n"
-    "worker.run.EXAMPLES_DIR = pathlib.Path(sys.argv[1])\n"
+    "import sys, pathlib, evaluator.bundled\n"
+    "evaluator.bundled.EXAMPLES_DIR = pathlib.Path(sys.argv[1])\n"
     "from manieval.cli import app\n"
     "app(['serve', '--port', sys.argv[2]], prog_name='manieval')\n"
 )
@@ -79,9 +79,14 @@ def load_challenges(settings: Settings) -> None:
 
 @contextmanager
 def running_server(
-    data_dir: Path, *, challenges: bool = True, extra: Mapping[str, str] | None = None
+    data_dir: Path,
+    *,
+    challenges: bool = True,
+    extra: Mapping[str, str] | None = None,
+    stop: signal.Signals = signal.SIGINT,
 ) -> Iterator[LiveServer]:
-    """`manieval serve` in a subprocess until the block ends (then interrupted, as by Ctrl-C)."""
+    """`manieval serve` in a subprocess until the block ends, then interrupted as by Ctrl-C
+    (`stop`: or killed). A second server may run on the same `data_dir` afterwards."""
     data_dir.mkdir(parents=True, exist_ok=True)
     closed_port = free_port()
     env = (
@@ -106,14 +111,15 @@ def running_server(
     if challenges:
         load_challenges(Settings(dev_mode=True, data_dir=data_dir, cookie_secure=False))
     policies = data_dir / "policies"
-    for name in ("scripted", "random"):
-        (policies / name).parent.mkdir(parents=True, exist_ok=True)
-        (policies / name).symlink_to(REPO / "examples" / "policies" / name)
-    (policies / "crasher").mkdir()
-    (policies / "crasher" / "policy.py").write_text(CRASHER)
+    if not policies.exists():
+        policies.mkdir()
+        for name in ("scripted", "random"):
+            (policies / name).symlink_to(REPO / "examples" / "policies" / name)
+        (policies / "crasher").mkdir()
+        (policies / "crasher" / "policy.py").write_text(CRASHER)
     port = free_port()
     log = data_dir / "server.log"
-    with log.open("wb") as out:
+    with log.open("ab") as out:  # a second server on the same data appends
         process = subprocess.Popen(
             [sys.executable, "-c", LAUNCHER, str(policies), str(port)],
             env=env,
@@ -126,7 +132,7 @@ def running_server(
         _wait_healthy(server, process)
         yield server
     finally:
-        process.send_signal(signal.SIGINT)
+        process.send_signal(stop)
         try:
             process.wait(timeout=30)
         except subprocess.TimeoutExpired:

@@ -29,6 +29,23 @@ INSTALL_HINT = "apt-get install -y kubernetes-client (or any kubectl with kustom
 Json = dict[str, Any]
 WORKLOADS = {"Deployment", "StatefulSet", "DaemonSet", "ReplicaSet", "Job"}
 
+# The Secrets ManiEval's pods read and what each holds: the dev overlay renders them with public
+# values, production makes them by hand (docs/deploy.md, "Secrets"). The worker token is in two:
+# the server checks it, the workers present it (and a rotation changes them one after the other).
+SECRETS = {
+    "manieval-secrets": {
+        "MANIEVAL_SECRET_KEY",
+        "MANIEVAL_SEED_SECRET",
+        "MANIEVAL_WORKER_TOKEN",
+        "MANIEVAL_BROKER_URL",
+        "MANIEVAL_REDIS_URL",
+    },
+    "manieval-db": {"MANIEVAL_DATABASE_URL"},
+    "manieval-worker-secrets": {"MANIEVAL_WORKER_TOKEN", "MANIEVAL_BROKER_URL"},
+}
+OPTIONAL_SECRETS = {"manieval-secrets": {"MANIEVAL_METRICS_TOKEN"}}
+"""Keys a Secret made by hand may hold beyond the dev overlay's."""
+
 
 def require_kubectl() -> str:
     """kubectl's path; fail in CI, skip elsewhere, when it is missing."""
@@ -119,7 +136,10 @@ def quantity(value: str | int | float) -> Decimal:
 
 
 def environment(objects: list[Json], workload: Json, container_name: str) -> dict[str, str]:
-    """A container's environment: its ConfigMaps and Secrets (envFrom), then its own env."""
+    """A container's environment: its ConfigMaps and Secrets (envFrom), then its own env. A
+    value taken from a Secret that is not rendered (production's are made by hand) is missing;
+    one taken from the pod (the downward API) is a stand-in: the pod's name is
+    `<workload>-pod`."""
     spec = workload["spec"]["template"]["spec"]
     c = next(c for c in containers(spec) if c["name"] == container_name)
     namespace = workload["metadata"]["namespace"]
@@ -134,8 +154,79 @@ def environment(objects: list[Json], workload: Json, container_name: str) -> dic
             for o in find(objects, "Secret", source["secretRef"]["name"]):
                 if _in(o, namespace):
                     env.update(o.get("stringData", {}))
-    env.update({e["name"]: e["value"] for e in c.get("env", []) if "value" in e})
+    for e in c.get("env", []):
+        if "value" in e:
+            env[e["name"]] = e["value"]
+        elif "secretKeyRef" in e.get("valueFrom", {}):
+            ref = e["valueFrom"]["secretKeyRef"]
+            for o in find(objects, "Secret", ref["name"]):
+                if _in(o, namespace) and ref["key"] in o.get("stringData", {}):
+                    env[e["name"]] = o["stringData"][ref["key"]]
+        elif "fieldRef" in e.get("valueFrom", {}):
+            env[e["name"]] = _from_pod(workload, e["valueFrom"]["fieldRef"]["fieldPath"])
     return env
+
+
+def _from_pod(workload: Json, path: str) -> str:
+    if path == "metadata.name":
+        return f"{workload['metadata']['name']}-pod"
+    if path == "metadata.namespace":
+        return str(workload["metadata"]["namespace"])
+    raise AssertionError(f"no stand-in for the pod's {path}")
+
+
+def secrets_read(pod_spec: Json, container_name: str) -> set[str]:
+    """The names of the Secrets a container can read: through its environment (envFrom, or one
+    key at a time) or a volume of its pod (mounted or not: any container may mount it)."""
+    c = next(c for c in containers(pod_spec) if c["name"] == container_name)
+    names = {s["secretRef"]["name"] for s in c.get("envFrom", []) if "secretRef" in s}
+    names |= {
+        e["valueFrom"]["secretKeyRef"]["name"]
+        for e in c.get("env", [])
+        if "secretKeyRef" in e.get("valueFrom", {})
+    }
+    for volume in pod_spec.get("volumes", []):
+        if "secret" in volume:
+            names.add(volume["secret"]["secretName"])
+        for source in volume.get("projected", {}).get("sources", []):
+            if "secret" in source:
+                names.add(source["secret"]["name"])
+    return names
+
+
+def config_maps_read(pod_spec: Json, container_name: str) -> set[str]:
+    """The names of the ConfigMaps a container reads, as secrets_read does for Secrets."""
+    c = next(c for c in containers(pod_spec) if c["name"] == container_name)
+    names = {s["configMapRef"]["name"] for s in c.get("envFrom", []) if "configMapRef" in s}
+    names |= {
+        e["valueFrom"]["configMapKeyRef"]["name"]
+        for e in c.get("env", [])
+        if "configMapKeyRef" in e.get("valueFrom", {})
+    }
+    for volume in pod_spec.get("volumes", []):
+        if "configMap" in volume:
+            names.add(volume["configMap"]["name"])
+        for source in volume.get("projected", {}).get("sources", []):
+            if "configMap" in source:
+                names.add(source["configMap"]["name"])
+    return names
+
+
+def argv(c: Json) -> list[str]:
+    """A container's command line: its command, then its args."""
+    return [str(word) for word in [*c.get("command", []), *c.get("args", [])]]
+
+
+def option(words: list[str], *names: str) -> list[str]:
+    """Every value given to a command-line option (`-Q x`, `--queues x` or `--queues=x`)."""
+    values = []
+    for i, word in enumerate(words):
+        for name in names:
+            if word == name and i + 1 < len(words):
+                values.append(words[i + 1])
+            elif name.startswith("--") and word.startswith(name + "="):
+                values.append(word.split("=", 1)[1])
+    return values
 
 
 def _in(o: Json, namespace: str) -> bool:

@@ -42,22 +42,33 @@ SCRIPT = textwrap.dedent(
     else:
         raise SystemExit("the blocker let torch through")
 
-    import server.cli, manieval.cli, worker.celery_app, worker.run, worker.reconcile
+    import server.cli, manieval.cli, manieval.serve, worker.celery_app, worker.run
+    import worker.reconcile, worker.embedded
+    from manieval.service import Service
     from server.app import create_app
     from server.kit.settings import Settings
 
     create_app(Settings(), background=False)
+    Service(Settings(), port=8000)  # what `manieval serve` runs, composed but not started
 
     from evaluator.plan import build_plan
     from evaluator.suite import SUITES_DIR, load_suite
+    from internal_api.schemas import Assignment
     from worker.kubernetes.watch import job_spec
     from worker.kubernetes.manifest import build_job
+    from worker.settings import WorkerSettings
 
     suite = load_suite("maniskill-core")
     plan = build_plan(suite, "dev")
-    yaml_text = (SUITES_DIR / "maniskill-core.yaml").read_text()
-    pinned = os.environ["POLICY"]
-    build_job(job_spec(Settings(), 1, 1, plan, suite=suite, suite_yaml=yaml_text, pinned=pinned))
+    handed = Assignment(
+        submission_id=1,
+        attempt=1,
+        image=os.environ["POLICY"],
+        plan=plan,
+        suite_yaml=(SUITES_DIR / "maniskill-core.yaml").read_text(),
+        shards=max(1, min(suite.shards, plan.episode_count())),
+    )
+    build_job(job_spec(WorkerSettings(), handed))
 
     from alembic.config import main
     main(["-c", "alembic.ini", "upgrade", "head"])

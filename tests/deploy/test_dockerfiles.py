@@ -103,12 +103,37 @@ def test_the_images_run_as_the_users_the_pods_name():
     for kind, workload, name in [
         ("Deployment", "manieval-api", "api"),
         ("Deployment", "manieval-worker", "worker"),
+        ("Deployment", "manieval-reconciler", "reconciler"),
         ("Job", "manieval-migrate", "migrate"),
     ]:
         context = container(objects, kind, workload, name)["securityContext"]
         assert (context["runAsUser"], context["runAsGroup"]) == (EVALUATOR_UID, SHARED_GID)
     (base,) = stages(DOCKER / "policy-base" / "Dockerfile")
     assert effective_user(base, [base]) == f"{POLICY_UID}:{POLICY_UID}"
+
+
+def test_the_pods_run_the_image_built_for_them():
+    # The worker image's command is Celery's worker; the reconciler is one too (with beat).
+    for overlay in ("dev", "production"):
+        objects = render(overlay)
+        images = {
+            name: container(objects, kind, name, c)["image"].split("@")[0].split(":")[0]
+            for kind, name, c in [
+                ("Deployment", "manieval-api", "api"),
+                ("Job", "manieval-migrate", "migrate"),
+                ("Deployment", "manieval-worker", "worker"),
+                ("Deployment", "manieval-reconciler", "reconciler"),
+            ]
+        }
+        assert images["manieval-api"] == images["manieval-migrate"]
+        assert images["manieval-worker"] == images["manieval-reconciler"]
+        assert images["manieval-worker"].endswith("worker"), overlay
+        assert images["manieval-api"].endswith("server"), overlay
+    worker_stage = next(
+        s for s in stages(DOCKER / "control-plane" / "Dockerfile") if s.name == "worker"
+    )
+    (cmd,) = [i.args for i in worker_stage.instructions if i.keyword == "CMD"]
+    assert cmd.startswith('["celery", "-A", "worker.celery_app", "worker"')
 
 
 def needed_in_images() -> list[str]:

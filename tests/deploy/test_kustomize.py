@@ -17,11 +17,16 @@ from tests.deploy.manifests import (
     EVALUATIONS,
     K8S,
     OVERLAYS,
+    SECRETS,
     Json,
+    config_maps_read,
     container,
+    containers,
     find,
     one,
+    pod_templates,
     render,
+    secrets_read,
 )
 
 VERSIONS = ["1.30", latest_version()]
@@ -204,3 +209,37 @@ def test_the_evaluation_namespace_holds_only_rules_and_the_rest_is_the_control_p
             assert kind in EVALUATION_NAMESPACE_KINDS, f"{kind} in {EVALUATIONS}"
         else:
             assert namespace == CONTROL_PLANE, f"{kind}/{o['metadata']['name']}"
+
+
+def missing_references(objects: list[Json], made_by_hand: set[str]) -> list[str]:
+    """ConfigMaps, Secrets and ServiceAccounts a pod names that the rendering does not hold
+    (a pod naming one that does not exist never starts); Secrets in `made_by_hand` excepted."""
+    missing = []
+
+    def held(kind: str, name: str, namespace: str) -> bool:
+        return any(o["metadata"].get("namespace") == namespace for o in find(objects, kind, name))
+
+    for workload, template in pod_templates(objects):
+        namespace, spec = workload["metadata"]["namespace"], template["spec"]
+        where = workload["metadata"]["name"]
+        account = spec.get("serviceAccountName", "default")
+        if account != "default" and not held("ServiceAccount", account, namespace):
+            missing.append(f"{where}: ServiceAccount {account}")
+        for c in containers(spec):
+            for name in config_maps_read(spec, c["name"]):
+                if not held("ConfigMap", name, namespace):
+                    missing.append(f"{where}: ConfigMap {name}")
+            for name in secrets_read(spec, c["name"]):
+                if name not in made_by_hand and not held("Secret", name, namespace):
+                    missing.append(f"{where}: Secret {name}")
+    return missing
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_everything_a_pod_names_is_in_the_overlay_or_made_by_hand(overlay: str):
+    objects = render(overlay)
+    # The dev overlay holds its Secrets (and Postgres's); production's are made by hand.
+    made_by_hand = set() if overlay == "dev" else set(SECRETS)
+    assert missing_references(objects, made_by_hand) == []
+    if overlay != "dev":
+        assert missing_references(objects, set()) != [], "the check sees the missing Secrets"

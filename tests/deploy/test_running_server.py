@@ -1,10 +1,12 @@
 """The probes, /metrics and the logs of a real `manieval serve` process, set up as in k8s/:
-the Celery queue on Redis, JSON logs, a metrics token, and a schema migrated by someone else."""
+the Celery queue on Redis, JSON logs, a metrics token, and a schema migrated by someone else:
+the migration Job, which holds the database URL and nothing else."""
 
 from __future__ import annotations
 
 import json
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -14,8 +16,12 @@ from pathlib import Path
 
 import httpx
 import pytest
+from alembic.config import Config as AlembicConfig
+from alembic.script import ScriptDirectory
 
 from tests.cli.conftest import REPO, clean_environment, free_port
+from tests.deploy import manifests
+from tests.deploy.manifests import argv, container, one, render
 from tests.worker.redis_server import Redis
 
 TOKEN = "m" * 40
@@ -122,3 +128,29 @@ def test_probes_metrics_and_logs_of_a_running_server(tmp_path: Path, redis: Redi
     access = [r for r in records if r["logger"] == "uvicorn.access"]
     assert any("/readyz" in r["message"] for r in access), log.read_text()
     assert all({"time", "level", "logger", "message"} <= r.keys() for r in records)
+
+
+def test_the_migration_job_migrates_with_the_database_url_alone(tmp_path: Path) -> None:
+    objects = render("dev")
+    job = one(objects, "Job", "manieval-migrate")
+    env = manifests.environment(objects, job, "migrate")
+    assert set(env) == {"MANIEVAL_DATABASE_URL"}  # no secret key, seed secret, worker token
+    database = tmp_path / "manieval.db"
+    env["MANIEVAL_DATABASE_URL"] = f"sqlite:///{database}"  # the cluster's, replaced
+    migrate = container(objects, "Job", "manieval-migrate", "migrate")
+    words = argv(migrate)
+    assert words[:3] == ["alembic", "-c", "/app/alembic.ini"]
+    assert migrate["workingDir"] == "/app"  # the repository's root in the image
+    words[2] = str(REPO / "alembic.ini")
+    done = subprocess.run(
+        [sys.executable, "-m", *words],
+        env=clean_environment() | env | {"HOME": str(tmp_path)},
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    head = ScriptDirectory.from_config(AlembicConfig(str(REPO / "alembic.ini"))).get_current_head()
+    with sqlite3.connect(database) as db:
+        assert db.execute("SELECT version_num FROM alembic_version").fetchall() == [(head,)]

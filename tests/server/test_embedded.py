@@ -1,56 +1,109 @@
-"""The embedded default end to end: API, outbox, in-process worker, evaluator, leaderboard."""
+"""The embedded default end to end, composed as `manieval serve` composes it: the server in
+uvicorn, its embedded worker reaching it over loopback HTTP (`/internal/v1`), the outbox,
+the evaluator and the leaderboard."""
 
 from __future__ import annotations
 
+import signal
+import socket
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
 
+from manieval.service import EMBEDDED_WORKER, Service
 from server.app import create_app
+from server.kit.db import make_engine, session_factory
 from server.kit.settings import Settings
+from server.models import Cause, Submission, Transition
+from tests.cli.conftest import running_server
 from tests.factories import PASSWORD, embedded_database, token_for
+from tests.workers import server_api, worker_settings
+from worker.embedded import EmbeddedWorker
 
 API = "/api/v1"
+FINAL = ("succeeded", "failed", "error", "cancelled", "timed_out")
 pytestmark = pytest.mark.sim
 
 
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def start_service(settings: Settings, sessions: sessionmaker[Session]) -> Service:
+    """The service on a free port (another process may take a free port first: try again)."""
+    for _ in range(5):
+        service = Service(settings, port=free_port(), sessions=sessions)
+        if service.start():
+            return service
+        service.stop()
+    raise AssertionError("the service did not start")
+
+
 @pytest.fixture
-def embedded(tmp_path: Path) -> Iterator[TestClient]:
+def service(tmp_path: Path) -> Iterator[Service]:
     settings = Settings(
         dev_mode=True, data_dir=tmp_path, cookie_secure=False, allow_local_policies=True
     )
-    sessions = embedded_database(settings, quota_concurrent=3)
-    with TestClient(create_app(settings, sessions=sessions)) as client:
+    service = start_service(settings, embedded_database(settings, quota_concurrent=3))
+    try:
+        yield service
+    finally:
+        service.stop()
+
+
+@pytest.fixture
+def embedded(service: Service) -> Iterator[httpx.Client]:
+    with httpx.Client(base_url=service.url, timeout=60) as client:
         r = client.post(
             f"{API}/users",
             json={"username": "demo", "email": "demo@example.org", "password": PASSWORD},
         )
-        assert r.status_code == 201
+        assert r.status_code == 201, r.text
         yield client
 
 
 def wait_final(
-    client: TestClient,
+    client: httpx.Client,
     headers: dict[str, str],
     sid: int,
     timeout: float = 240,
-) -> dict[str, object]:
+) -> dict[str, Any]:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        body: dict[str, object] = client.get(f"{API}/submissions/{sid}", headers=headers).json()
-        if body["state"] in ("succeeded", "failed", "error", "cancelled", "timed_out"):
+        body: dict[str, Any] = client.get(f"{API}/submissions/{sid}", headers=headers).json()
+        if body["state"] in FINAL:
             return body
         time.sleep(0.2)
     raise AssertionError(f"submission {sid} did not finish in {timeout} s")
 
 
+def wait_running(
+    client: httpx.Client, headers: dict[str, str], sid: int, *, attempt: int = 1
+) -> dict[str, Any]:
+    deadline = time.monotonic() + 180
+    while True:
+        body: dict[str, Any] = client.get(f"{API}/submissions/{sid}", headers=headers).json()
+        if body["state"] == "running" and body["attempt"] == attempt:
+            return body
+        assert body["state"] not in FINAL, body
+        assert time.monotonic() < deadline, body
+        time.sleep(0.05)
+
+
 def test_local_policy_runs_to_succeeded_and_reaches_the_leaderboard(
-    embedded: TestClient,
+    embedded: httpx.Client,
 ) -> None:
-    headers = token_for(embedded, "demo")
+    headers = token_for(embedded, "demo")  # type: ignore[arg-type]
     r = embedded.post(
         f"{API}/submissions",
         headers=headers,
@@ -59,9 +112,9 @@ def test_local_policy_runs_to_succeeded_and_reaches_the_leaderboard(
     assert r.status_code == 202, r.text
     body = wait_final(embedded, headers, r.json()["id"])
     assert body["state"] == "succeeded", body
-    states = [t["to_state"] for t in body["transitions"]]  # type: ignore[union-attr]
+    states = [t["to_state"] for t in body["transitions"]]
     assert states == ["queued", "launching", "running", "succeeded"]
-    assert {t["condition"] for t in body["tasks"]} == {"nominal", "obs_noise"}  # type: ignore[union-attr]
+    assert {t["condition"] for t in body["tasks"]} == {"nominal", "obs_noise"}
     episodes = embedded.get(f"{API}/submissions/{r.json()['id']}/episodes", headers=headers).json()
     assert episodes["total"] == 4  # 2 episodes x 2 conditions
     assert [e["seed"] for e in episodes["items"][:2]] == [0, 1]
@@ -69,8 +122,8 @@ def test_local_policy_runs_to_succeeded_and_reaches_the_leaderboard(
     assert [row["submission_id"] for row in board["items"]] == [r.json()["id"]]
 
 
-def test_unknown_local_policy_is_refused_on_the_field(embedded: TestClient) -> None:
-    headers = token_for(embedded, "demo")
+def test_unknown_local_policy_is_refused_on_the_field(embedded: httpx.Client) -> None:
+    headers = token_for(embedded, "demo")  # type: ignore[arg-type]
     r = embedded.post(
         f"{API}/submissions",
         headers=headers,
@@ -80,40 +133,37 @@ def test_unknown_local_policy_is_refused_on_the_field(embedded: TestClient) -> N
     assert "one of:" in r.json()["error"]["fields"]["image"]
 
 
-def test_cancel_stops_a_running_evaluation(embedded: TestClient) -> None:
-    headers = token_for(embedded, "demo")
+def test_cancel_stops_a_running_evaluation(embedded: httpx.Client, service: Service) -> None:
+    headers = token_for(embedded, "demo")  # type: ignore[arg-type]
     r = embedded.post(
         f"{API}/submissions",
         headers=headers,
         json={"challenge": "server-long", "phase": "test", "image": "local:random"},
     )
     sid = r.json()["id"]
-    deadline = time.monotonic() + 120
-    while embedded.get(f"{API}/submissions/{sid}", headers=headers).json()["state"] != "running":
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
+    wait_running(embedded, headers, sid)
     cancelled = embedded.post(f"{API}/submissions/{sid}/cancel", headers=headers)
     assert cancelled.status_code == 200
     assert cancelled.json()["state"] == "cancelled"
-    idle = embedded.app.state.inline_queue.idle  # type: ignore[attr-defined]
-    assert idle.wait(60), "the worker kept running after the cancel"
+    assert service.worker is not None
+    assert service.worker.queue.idle.wait(60), "the worker kept running after the cancel"
     body = wait_final(embedded, headers, sid)
     assert body["state"] == "cancelled"
     assert body["reason"] == "cancelled by its owner"
 
 
 def test_a_crashing_policy_ends_failed_with_its_log_for_the_owner_only(
-    embedded: TestClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    embedded: httpx.Client, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import worker.run
+    import evaluator.bundled
 
     policies = tmp_path / "policies"
     (policies / "crasher").mkdir(parents=True)
     (policies / "crasher" / "policy.py").write_text(
         "import sys\nprint('loading weights... out of luck', file=sys.stderr)\nsys.exit(3)\n"
     )
-    monkeypatch.setattr(worker.run, "EXAMPLES_DIR", policies)
-    headers = token_for(embedded, "demo")
+    monkeypatch.setattr(evaluator.bundled, "EXAMPLES_DIR", policies)
+    headers = token_for(embedded, "demo")  # type: ignore[arg-type]
     r = embedded.post(
         f"{API}/submissions",
         headers=headers,
@@ -126,3 +176,111 @@ def test_a_crashing_policy_ends_failed_with_its_log_for_the_owner_only(
     logs = embedded.get(f"{API}/submissions/{r.json()['id']}/logs", headers=headers).json()
     assert "out of luck" in logs["log_tail"]
     assert embedded.get(f"{API}/submissions/{r.json()['id']}/logs").status_code == 404
+
+
+# A restart ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGKILL], ids=["ctrl-c", "crash"])
+def test_a_restarted_server_ends_its_runs_in_flight_and_runs_them_once_more(
+    tmp_path: Path, stop: signal.Signals
+) -> None:
+    # `manieval serve` in a process of its own: stopped (Ctrl-C) or killed in the middle of an
+    # evaluation, then started again on the same data. Its embedded worker, at start, tells
+    # the server it restarted: the attempt that died with it ends `error` (ours: no quota),
+    # with that cause, and runs once more as attempt 2.
+    data = tmp_path / "data"
+    with httpx.Client(timeout=60) as http:
+        with running_server(data, stop=stop) as first:
+            http.base_url = httpx.URL(first.url)
+            http.post(
+                f"{API}/users",
+                json={"username": "demo", "email": "demo@example.org", "password": PASSWORD},
+            ).raise_for_status()
+            headers = token_for(http, "demo")  # type: ignore[arg-type]
+            r = http.post(
+                f"{API}/submissions",
+                headers=headers,
+                json={"challenge": "server-long", "image": "local:random"},
+            )
+            assert r.status_code == 202, r.text
+            sid = r.json()["id"]
+            wait_running(http, headers, sid)
+        with running_server(data, challenges=False) as second:
+            http.base_url = httpx.URL(second.url)
+            again = wait_running(http, headers, sid, attempt=2)
+            ended = [t for t in again["transitions"] if t["attempt"] == 1][-1]
+            assert ended["to_state"] == "error"
+            assert ended["reason"] == "the worker evaluating it restarted; queued again"
+            assert [t["to_state"] for t in again["transitions"]] == [
+                "queued",
+                "launching",
+                "running",
+                "error",
+                "queued",
+                "launching",
+                "running",
+            ]
+            assert http.post(f"{API}/submissions/{sid}/cancel", headers=headers).is_success
+            assert wait_final(http, headers, sid)["state"] == "cancelled"
+    database = Settings(dev_mode=True, data_dir=data, cookie_secure=False).resolved_database_url
+    sessions = session_factory(make_engine(database))
+    with sessions() as db:
+        submission = db.get(Submission, sid)
+        assert submission is not None
+        assert submission.worker == EMBEDDED_WORKER
+        causes = db.scalars(
+            select(Transition.cause).where(
+                Transition.submission_id == sid, Transition.cause.is_not(None)
+            )
+        ).all()
+        assert causes == [Cause.WORKER_RESTARTED]
+
+
+def test_a_run_that_outlives_the_stopped_worker_still_reports_and_spools_nothing_of_ours(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # `manieval serve` stopping gives the worker's threads a few seconds, then the process ends
+    # under a run still going. Until then that run's reports must still go out (or fail as an
+    # outage would): never end it in an `error` of ours, kept in the spool and sent at the next
+    # start, where the restart should have run it again.
+    settings = Settings(
+        dev_mode=True, data_dir=tmp_path, cookie_secure=False, allow_local_policies=True
+    )
+    sessions = embedded_database(settings, quota_concurrent=3)
+    wsettings = worker_settings(settings, worker_name=EMBEDDED_WORKER)
+    worker = EmbeddedWorker(wsettings)
+    app = create_app(settings, sessions=sessions, work=worker.queue)
+    api = server_api(app, wsettings)
+    reporting, stopped = threading.Event(), threading.Event()
+    progress = api.progress
+
+    def held_until_stopped(*args: Any, **kwargs: Any) -> Any:
+        reporting.set()
+        stopped.wait(300)
+        return progress(*args, **kwargs)
+
+    monkeypatch.setattr(api, "progress", held_until_stopped)
+    with TestClient(app) as client:
+        try:
+            client.post(
+                f"{API}/users",
+                json={"username": "demo", "email": "demo@example.org", "password": PASSWORD},
+            ).raise_for_status()
+            headers = token_for(client, "demo")
+            worker.start(api=api)
+            r = client.post(
+                f"{API}/submissions",
+                headers=headers,
+                json={"challenge": "server-tiny", "image": "local:scripted"},
+            )
+            assert r.status_code == 202, r.text
+            assert reporting.wait(240), "the run sent no progress"
+            worker.stop(timeout=0.1)  # the run is past its first report: it goes on
+            stopped.set()
+            body = wait_final(client, headers, r.json()["id"])
+            assert body["state"] == "succeeded", body
+            assert list(api.spool) == []
+        finally:
+            stopped.set()
+            worker.stop(timeout=30)

@@ -11,7 +11,8 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.kit.observability import JsonFormatter, ServiceCollector, configure_logging, error_kind
+from internal_api.logs import JsonFormatter, configure_logging
+from server.kit.observability import ServiceCollector, error_kind
 from server.models import State, Submission, utcnow
 from server.submissions.reports import report_final, report_state
 from tests.factories import make_challenge, make_user, queue_submission

@@ -273,14 +273,21 @@ def test_internal_api_needs_the_worker_token(
     client: TestClient, setup: dict[str, dict[str, str]]
 ) -> None:
     s = submit(client, setup["alice"])
-    url = f"/internal/v1/submissions/{s['id']}/attempts/1/state"
-    body = {"state": "launching", "reason": "go"}
+    token = client.app.state.services.settings.secret("worker_token")  # type: ignore[attr-defined]
+    worker = {"Authorization": f"Bearer {token}"}
+    claims, claim = "/internal/v1/claims", {"worker": "w1"}
+    assert client.post(claims, json=claim).status_code == 401
+    assert client.post(claims, json=claim, headers=setup["alice"]).status_code == 401
+    claimed = client.post(claims, json=claim, headers=worker)
+    assert claimed.status_code == 200
+    assert (claimed.json()["submission_id"], claimed.json()["attempt"]) == (s["id"], 1)
+    url = f"/internal/v1/submissions/{s['id']}/attempts/1/running"
+    body = {"reason": "go", "deadline_s": 60}
     assert client.post(url, json=body).status_code == 401
     assert client.post(url, json=body, headers=setup["alice"]).status_code == 401
-    worker = client.app.state.services.settings.secret("worker_token")  # type: ignore[attr-defined]
-    ok = client.post(url, json=body, headers={"Authorization": f"Bearer {worker}"})
+    ok = client.post(url, json=body, headers=worker)
     assert ok.status_code == 200
-    assert ok.json() == {"applied": True, "state": "launching"}
+    assert ok.json() == {"applied": True, "state": "running"}
     assert "/internal" not in client.get("/openapi.json").text
 
 

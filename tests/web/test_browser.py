@@ -19,10 +19,11 @@ from pathlib import Path
 import pytest
 import uvicorn
 
-from server.app import create_app, inline_queue
+from manieval.service import embedded_worker_settings
+from server.app import create_app
 from server.kit.settings import Settings
 from tests.factories import embedded_database
-from worker.embedded import InlineQueue
+from worker.embedded import EmbeddedWorker, InlineQueue
 
 pytestmark = pytest.mark.sim
 
@@ -91,10 +92,12 @@ def server(tmp_path: Path) -> Iterator[Server]:
         dev_mode=True, data_dir=tmp_path / "data", cookie_secure=False, allow_local_policies=True
     )
     sessions = embedded_database(settings, quota_concurrent=3)
-    inline = inline_queue(sessions, settings)
-    gate = GatedQueue(inline)
-    app = create_app(settings, sessions=sessions, work=gate)
     port = free_port()
+    # Composed as `manieval serve` composes it, with the gate between the server's outbox and
+    # the embedded worker's queue.
+    worker = EmbeddedWorker(embedded_worker_settings(settings, port=port))
+    gate = GatedQueue(worker.queue)
+    app = create_app(settings, sessions=sessions, work=gate)
     # No log_config or log_level: uvicorn would reconfigure this process's logging for the
     # tests that run after this one.
     config = uvicorn.Config(
@@ -102,17 +105,17 @@ def server(tmp_path: Path) -> Iterator[Server]:
     )
     running = uvicorn.Server(config)
     thread = threading.Thread(target=running.run, name="uvicorn", daemon=True)
-    inline.start()
     thread.start()
-    while not running.started:
-        assert thread.is_alive(), "the server did not start"
-        time.sleep(0.02)
     try:
+        while not running.started:
+            assert thread.is_alive(), "the server did not start"
+            time.sleep(0.02)
+        worker.start()  # over loopback HTTP, once the server answers
         yield Server(url=f"http://127.0.0.1:{port}", gate=gate)
     finally:
         running.should_exit = True
         thread.join(timeout=30)
-        inline.stop(timeout=30)
+        worker.stop(timeout=30)
 
 
 @pytest.fixture

@@ -1,25 +1,32 @@
 """An HTTP test double of the Kubernetes API server, with just the endpoints the worker uses.
 
 No API server can run on this machine, so the official client talks over HTTP to this one:
-batch/v1 Jobs (create, read, list by label with pagination, delete with a propagation policy)
-and core/v1 pods (list by label, read a container's log). Created Jobs are checked against the
-official schema, strictly, as the real server's validation would refuse them. Tests play the
+batch/v1 Jobs (create, read, list by label with pagination, delete with a propagation policy),
+core/v1 pods (list by label, read a container's log) and events (list by involved object).
+Created Jobs are checked against the official schema, strictly, as the real server's validation
+would refuse them. Tests play the
 Job controller and the kubelet (`run`, `succeed`, `fail`, `exceed_deadline`), queue faults for
 the next matching requests, and inspect every request received.
 
 Where the real server behaves in a way that surprises clients, the double does the same: a
 foreground deletion answers with the Job itself (not a Status), batch/v1 deletes without a
-propagation policy orphan the pods, and logs come back as text/plain.
+propagation policy orphan the pods, and logs come back as text/plain. And where real clusters
+fail in ways the worker must tell apart from the policy's failures, the double fails alike:
+evicted pods are deleted (and replaced, as the Job's podFailurePolicy ignores disruptions),
+pods stay Pending with an Unschedulable condition, a ResourceQuota refuses Jobs (403 on create)
+or pods (the Job controller records a FailedCreate warning and makes no pod), and an expired
+list continuation answers `410 Gone`.
 """
 
 from __future__ import annotations
 
+import base64
 import copy
 import json
 import re
 import threading
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
@@ -32,7 +39,7 @@ import kubernetes_validate
 from kubernetes.client import ApiClient, Configuration
 
 from evaluator.job import EvaluationJob
-from worker.kubernetes.client import Backoff, KubernetesExecutor
+from worker.kubernetes.client import Backoff, KubernetesExecutor, no_client_retries
 from worker.kubernetes.manifest import INDEX_LABEL, JobSpec, Resources
 
 NAMESPACE = "manieval-eval"
@@ -45,6 +52,8 @@ TINY_SUITE = Path(__file__).parents[1] / "evaluator" / "tiny_suite.yaml"
 Json = dict[str, Any]
 _JOBS = re.compile(r"^/apis/batch/v1/namespaces/([^/]+)/jobs(?:/([^/]+))?$")
 _PODS = re.compile(r"^/api/v1/namespaces/([^/]+)/pods(?:/([^/]+)/log)?$")
+_EVENTS = re.compile(r"^/api/v1/namespaces/([^/]+)/events$")
+_SECRETS = re.compile(r"^/api/v1/namespaces/([^/]+)/secrets$")
 _EPOCH = datetime(2026, 1, 1, tzinfo=UTC)
 
 
@@ -69,8 +78,10 @@ def make_spec(
     policy_image: str = POLICY_IMAGE,
     evaluation: EvaluationJob | None = None,
     evaluator_resources: Resources | None = None,
+    **extra: Any,
 ) -> JobSpec:
-    """A valid JobSpec with small resources; override what a test is about."""
+    """A valid JobSpec with small resources; override what a test is about (`extra`: any
+    other JobSpec field, such as the node-pool ones)."""
     return JobSpec(
         submission_id=submission_id,
         attempt=attempt,
@@ -85,6 +96,7 @@ def make_spec(
         ttl_seconds_after_finished=600,
         runtime_class_name=runtime_class_name,
         shards=shards,
+        **extra,
     )
 
 
@@ -116,8 +128,19 @@ class ApiServerDouble:
     requests: list[Recorded] = field(default_factory=list)
     deletions: list[tuple[str, str | None]] = field(default_factory=list)
     faults: list[Fault] = field(default_factory=list)
+    events: list[Json] = field(default_factory=list)
+    secrets: dict[tuple[str, str], Json] = field(default_factory=dict)
+    """Created Secrets; the garbage collector deletes those a deleted Job owned."""
     hold_deletions: bool = False
     """Foreground deletions leave the Job terminating until `finish_deletions`."""
+    job_quota: int | None = None
+    """A ResourceQuota's `count/jobs.batch`: creating a Job beyond it answers 403."""
+    pod_quota: int | None = None
+    """A ResourceQuota's `pods`: the controller's pod creations beyond it are refused."""
+    on_create: Callable[[str, str], object] | None = None
+    """Plays the Job controller the moment a Job is created (namespace, name)."""
+    expire_continue: bool = False
+    """Continue tokens have expired: a list with one answers 410 Gone."""
     lock: threading.RLock = field(default_factory=threading.RLock)
     _clock: int = 0
 
@@ -165,10 +188,18 @@ class ApiServerDouble:
             return self._create_job(manifest["metadata"]["namespace"], copy.deepcopy(manifest))
 
     def run(self, namespace: str, name: str, *, ready: bool = True) -> list[str]:
-        """The controller creates the pods; with `ready`, the kubelet has started them."""
+        """The controller creates the pods; with `ready`, the kubelet has started them. Pods
+        the ResourceQuota refuses are not made: a FailedCreate warning on the Job says why."""
         with self.lock:
             job = self.jobs[(namespace, name)]
-            pods = [self._add_pod(job, index, ready=ready) for index in _indexes(job)]
+            pods = []
+            for index in _indexes(job):
+                if self.pod_quota is not None and len(self._in(self.pods, namespace)) >= (
+                    self.pod_quota
+                ):
+                    self._quota_refused_pod(job)
+                    continue
+                pods.append(self._add_pod(job, index, ready=ready))
             count = len(pods)
             job["status"].update(active=count, ready=count if ready else 0, startTime=self._now())
             return pods
@@ -232,6 +263,63 @@ class ApiServerDouble:
             message = "Job was active longer than specified deadline"
             self._conclude(job, "FailureTarget", "Failed", "DeadlineExceeded", message)
 
+    def evict(
+        self,
+        namespace: str,
+        name: str,
+        *,
+        reason: str = "EvictionByEvictionAPI",
+        replace: bool = True,
+    ) -> str | None:
+        """Evict the Job's pods as a real cluster does: marked DisruptionTarget, then deleted
+        (the Eviction API and preemption delete the pod). The controller makes a replacement
+        (podFailurePolicy ignores disruptions), Pending until scheduled: its name."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                del self.pods[(namespace, pod["metadata"]["name"])]
+            if not replace:
+                return None
+            return self._add_pod(self.jobs[(namespace, name)], 0, ready=False)
+
+    def lose_node(self, namespace: str, name: str) -> None:
+        """The pods' node stopped answering: the taint manager marks its pods DisruptionTarget
+        (before deleting them) and they are reported with reason NodeLost."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                pod["status"]["conditions"] = [
+                    {
+                        "type": "DisruptionTarget",
+                        "status": "True",
+                        "reason": "DeletionByTaintManager",
+                        "message": "Taint manager: deleting due to NoExecute taint",
+                    }
+                ]
+                pod["status"]["reason"] = "NodeLost"
+
+    def unschedulable(
+        self,
+        namespace: str,
+        name: str,
+        *,
+        message: str = "0/3 nodes are available: 3 Insufficient nvidia.com/gpu.",
+    ) -> list[str]:
+        """The controller created the pods but the scheduler places none: they stay Pending
+        with PodScheduled=False, reason Unschedulable."""
+        with self.lock:
+            names = self.run(namespace, name, ready=False)
+            for pod_name in names:
+                self.pods[(namespace, pod_name)]["status"]["conditions"] = [
+                    {
+                        "type": "PodScheduled",
+                        "status": "False",
+                        "reason": "Unschedulable",
+                        "message": message,
+                        "lastProbeTime": None,
+                        "lastTransitionTime": self._now(),
+                    }
+                ]
+            return names
+
     def disrupt(self, namespace: str, name: str) -> str:
         """Evict the Job's pod (DisruptionTarget); the controller makes a new one (its name)."""
         with self.lock:
@@ -292,13 +380,15 @@ class ApiServerDouble:
             for key, job in list(self.jobs.items()):
                 if job["metadata"].get("deletionTimestamp"):
                     del self.jobs[key]
+                    self._collect_garbage(job)
 
     def pods_of(self, namespace: str, name: str) -> list[Json]:
         with self.lock:
             return copy.deepcopy(self._pods_of(namespace, name))
 
     def created_bodies(self) -> list[Any]:
-        return [r.body for r in self.requests if r.method == "POST"]
+        """The bodies of every Job creation request (Secrets are in `secrets`)."""
+        return [r.body for r in self.requests if r.method == "POST" and r.path.endswith("/jobs")]
 
     # The API.
 
@@ -323,6 +413,10 @@ class ApiServerDouble:
             namespace, name = match.groups()
             if name is None and method == "POST":
                 return self._post_job(namespace, body)
+            if name is None and method == "GET" and self.expire_continue and "continue" in query:
+                self.expire_continue = False  # a fresh list gets fresh tokens
+                message = "The provided continue parameter is too old to display a consistent list"
+                return _status(410, "Expired", message)
             if name is None and method == "GET":
                 return 200, self._list("JobList", "batch/v1", self._in(self.jobs, namespace), query)
             if name is not None and method == "GET":
@@ -334,6 +428,14 @@ class ApiServerDouble:
                 )
             if name is not None and method == "DELETE":
                 return self._delete_job(namespace, name, query, body)
+        if (match := _SECRETS.match(path)) and method == "POST":
+            return self._post_secret(match.group(1), body)
+        if (match := _EVENTS.match(path)) and method == "GET":
+            (namespace,) = match.groups()
+            events = [e for e in self.events if e["metadata"]["namespace"] == namespace]
+            selector = query.get("fieldSelector", [""])[0]
+            chosen = [e for e in events if _fields(selector, e)]
+            return 200, {"kind": "EventList", "apiVersion": "v1", "metadata": {}, "items": chosen}
         if match := _PODS.match(path):
             namespace, name = match.groups()
             if name is None and method == "GET":
@@ -351,7 +453,77 @@ class ApiServerDouble:
         name = body["metadata"]["name"]
         if (namespace, name) in self.jobs:
             return _status(409, "AlreadyExists", f'jobs.batch "{name}" already exists')
-        return 201, self._create_job(namespace, body)
+        used = len(self._in(self.jobs, namespace))
+        if self.job_quota is not None and used >= self.job_quota:
+            message = (
+                f'jobs.batch "{name}" is forbidden: exceeded quota: eval-quota, requested: '
+                f"count/jobs.batch=1, used: count/jobs.batch={used}, "
+                f"limited: count/jobs.batch={self.job_quota}"
+            )
+            return _status(403, "Forbidden", message)
+        created = self._create_job(namespace, body)
+        if self.on_create is not None:
+            self.on_create(namespace, name)
+        return 201, copy.deepcopy(created)
+
+    def _post_secret(self, namespace: str, body: Json) -> tuple[int, Any]:
+        try:
+            kubernetes_validate.validate(body, SCHEMA_VERSION, strict=True)
+        except kubernetes_validate.ValidationError as exc:
+            path = ".".join(str(p) for p in exc.path)
+            return _status(422, "Invalid", f"Secret is invalid: {path}: {exc.message}")
+        name = body["metadata"]["name"]
+        if (namespace, name) in self.secrets:
+            return _status(409, "AlreadyExists", f'secrets "{name}" already exists')
+        secret = copy.deepcopy(body)
+        secret["metadata"].update(uid=str(uuid.uuid4()), creationTimestamp=self._now())
+        secret["data"] = {
+            k: base64.b64encode(v.encode()).decode() for k, v in secret.pop("stringData").items()
+        }
+        self.secrets[(namespace, name)] = secret
+        return 201, secret
+
+    def _collect_garbage(self, job: Json) -> None:
+        """Delete the dependents of a deleted Job (its Secret) by their ownerReferences."""
+        uid = job["metadata"]["uid"]
+        for key, secret in list(self.secrets.items()):
+            owners = secret["metadata"].get("ownerReferences") or []
+            if any(o.get("uid") == uid for o in owners):
+                del self.secrets[key]
+
+    def _quota_refused_pod(self, job: Json) -> None:
+        meta = job["metadata"]
+        used = len(self._in(self.pods, meta["namespace"]))
+        message = (
+            f'Error creating: pods "{meta["name"]}-{uuid.uuid4().hex[:5]}" is forbidden: '
+            f"exceeded quota: eval-quota, requested: pods=1, used: pods={used}, "
+            f"limited: pods={self.pod_quota}"
+        )
+        now = self._now()
+        self.events.append(
+            {
+                "apiVersion": "v1",
+                "kind": "Event",
+                "metadata": {
+                    "name": f"{meta['name']}.{uuid.uuid4().hex[:8]}",
+                    "namespace": meta["namespace"],
+                },
+                "involvedObject": {
+                    "apiVersion": "batch/v1",
+                    "kind": "Job",
+                    "name": meta["name"],
+                    "namespace": meta["namespace"],
+                    "uid": meta["uid"],
+                },
+                "type": "Warning",
+                "reason": "FailedCreate",
+                "message": message,
+                "firstTimestamp": now,
+                "lastTimestamp": now,
+                "count": 1,
+                "source": {"component": "job-controller"},
+            }
+        )
 
     def _create_job(self, namespace: str, job: Json) -> Json:
         meta = job["metadata"]
@@ -388,8 +560,9 @@ class ApiServerDouble:
             answer = copy.deepcopy(job)
             if not self.hold_deletions:
                 del self.jobs[(namespace, name)]
+                self._collect_garbage(job)
             return 200, answer  # the object, still present: not a Status
-        del self.jobs[(namespace, name)]  # without a policy, batch/v1 orphans the pods
+        del self.jobs[(namespace, name)]  # without a policy, batch/v1 orphans the dependents
         return 200, {"kind": "Status", "apiVersion": "v1", "status": "Success", "metadata": {}}
 
     def _log(self, namespace: str, name: str, query: dict[str, list[str]]) -> tuple[int, Any]:
@@ -569,6 +742,18 @@ def _error(code: int) -> tuple[int, Json]:
     return _status(code, reasons.get(code, "Failure"), f"injected fault {code}")
 
 
+def _fields(selector: str, obj: Json) -> bool:
+    """Field selectors of equality requirements on dotted paths (`involvedObject.name=x`)."""
+    for requirement in filter(None, (r.strip() for r in selector.split(","))):
+        path, value = requirement.replace("==", "=").split("=", 1)
+        current: Any = obj
+        for part in path.split("."):
+            current = current.get(part) if isinstance(current, dict) else None
+        if current != value:
+            return False
+    return True
+
+
 def _selects(selector: str, labels: dict[str, str]) -> bool:
     """Equality (`k=v`, `k==v`), inequality (`k!=v`) and existence (`k`) requirements."""
     for requirement in filter(None, (r.strip() for r in selector.split(","))):
@@ -596,7 +781,7 @@ def executor_for(
     double: ApiServerDouble, *, sleeps: list[float] | None = None, attempts: int = 6
 ) -> KubernetesExecutor:
     """An executor whose official client talks to `double`; waits are recorded, not slept."""
-    configuration = Configuration(host=double.host)
+    configuration = no_client_retries(Configuration(host=double.host))
     recorded = sleeps if sleeps is not None else []
     return KubernetesExecutor(
         ApiClient(configuration),

@@ -1,5 +1,11 @@
 """Real `celery worker` processes on a real Redis take submissions from the API to the end,
-and survive the faults the reconciler exists for."""
+and survive the faults the reconciler exists for.
+
+The server is a real HTTP server in this process (uvicorn, the Celery queue) on a fresh
+Postgres database. The workers are `celery worker` subprocesses started with the broker URL,
+the server's URL and the worker token only: no database URL, no secret key, no seed secret.
+They reach the server through /internal/v1, as a worker on another machine does.
+"""
 
 from __future__ import annotations
 
@@ -8,25 +14,280 @@ import signal
 import subprocess
 import sys
 import time
+import uuid
 from collections.abc import Callable, Iterator
-from datetime import timedelta
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
 from pathlib import Path
+from typing import Any, cast
 
+import httpx
 import pytest
-from fastapi.testclient import TestClient
-from sqlalchemy import select
+import redis as redis_client
+from celery import Celery
+from fastapi import FastAPI
+from sqlalchemy import create_engine, select, text, update
+from sqlalchemy.orm import Session, sessionmaker
 
-from server.app import create_app
+import evaluator.bundled
+from internal_api.tasks import RECONCILE
+from manieval.service import Service
+from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.settings import Settings
-from server.models import State, Submission, Transition, utcnow
-from tests.factories import PASSWORD, embedded_database, token_for
-from tests.worker.redis_server import Redis
-from worker.queue import CeleryQueue
-from worker.reconcile import reconcile
+from server.models import Cause, State, Submission, Transition, utcnow
+from server.submissions.outbox import CeleryQueue
+from server.submissions.reports import report_running
+from server.submissions.work import claim_next
+from tests.factories import PASSWORD, SUITE, embedded_database, fake_resolve_for
+from tests.worker.redis_server import Redis, free_port
 
 pytestmark = pytest.mark.sim
-API = "/api/v1"
+REPO = Path(__file__).resolve().parents[2]
 FINAL = {"succeeded", "failed", "error", "cancelled", "timed_out"}
+WORKER_START_S = 180.0  # a loaded 2-core machine imports torch and ManiSkill slowly
+STOP_S = 120.0  # a cancelled or lost run is left well within this (it would run for minutes)
+
+# What a worker's environment may hold: the broker, the server's URL and the worker token,
+# its queue and data directory, and whether it runs the bundled `local:` policies.
+WORKER_KEYS = {
+    "MANIEVAL_SERVER_URL",
+    "MANIEVAL_WORKER_TOKEN",
+    "MANIEVAL_BROKER_URL",
+    "MANIEVAL_CELERY_QUEUE",
+    "MANIEVAL_ALLOW_LOCAL_POLICIES",
+    "MANIEVAL_DATA_DIR",
+}
+OPTIONAL_KEYS = {"MANIEVAL_WORKER_NAME", "MANIEVAL_RECONCILE_QUEUE"}  # names, not secrets
+SECRETS = {"MANIEVAL_DATABASE_URL", "MANIEVAL_SECRET_KEY", "MANIEVAL_SEED_SECRET"}
+
+# The `local:` policies of these tests: the bundled ones, one that crashes at once, and one
+# that takes 0.25 s per action (its time budget runs out; a long run of it lasts for minutes).
+CRASHER = "import sys\nprint('loading weights... out of luck', file=sys.stderr)\nsys.exit(3)\n"
+SLEEPER = """
+import time
+import numpy as np
+from manieval_sdk import Policy, serve
+
+class Sleeper(Policy):
+    def act(self, obs):
+        time.sleep(0.25)
+        return np.zeros(self.spec.action_shape, dtype=np.float32)
+
+serve(Sleeper())
+"""
+# The worker process with its `local:` policies in the given directory, then `celery ARGS`.
+LAUNCHER = (
+    "import sys, pathlib, evaluator.bundled\n"
+    "evaluator.bundled.EXAMPLES_DIR = pathlib.Path(sys.argv[1])\n"
+    "sys.argv = ['celery', *sys.argv[2:]]\n"
+    "from celery.__main__ import main\n"
+    "main()\n"
+)
+
+
+@pytest.fixture(scope="module")
+def policies(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    directory = tmp_path_factory.mktemp("policies")
+    for name in ("scripted", "random"):
+        (directory / name).symlink_to(REPO / "examples" / "policies" / name)
+    (directory / "crasher").mkdir()
+    (directory / "crasher" / "policy.py").write_text(CRASHER)
+    (directory / "sleeper").mkdir()
+    (directory / "sleeper" / "policy.py").write_text(SLEEPER)
+    return directory
+
+
+def fresh_database(postgres_url: str) -> tuple[str, Callable[[], None]]:
+    """A new, empty database on the machine of `postgres_url`, and how to drop it."""
+    name = f"manieval_celery_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(
+        postgres_url.rsplit("/", 1)[0] + "/postgres", isolation_level="AUTOCOMMIT"
+    )
+    with admin.connect() as conn:
+        conn.execute(text(f'CREATE DATABASE "{name}"'))
+
+    def drop() -> None:
+        with admin.connect() as conn:
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+
+    return postgres_url.rsplit("/", 1)[0] + f"/{name}", drop
+
+
+def add_challenge(settings: Settings, name: str, **replace: str) -> None:
+    """Another challenge of the server test suite, named `name`, with text replaced."""
+    suite = settings.data_dir / f"{name}.yaml"
+    source = SUITE.read_text().replace("name: server-tiny", f"name: {name}")
+    for old, new in replace.items():
+        assert old in source, old
+        source = source.replace(old, new)
+    suite.write_text(source)
+    from server.kit.db import make_engine, session_factory
+
+    engine = make_engine(settings.resolved_database_url)
+    try:
+        with session_factory(engine).begin() as db:
+            load_challenge(
+                db,
+                suite,
+                ChallengeOptions(quota_concurrent=50, quota_per_day=1000),
+                seed_secret=settings.secret("seed_secret"),
+            )
+    finally:
+        engine.dispose()
+
+
+def worker_environment(
+    settings: Settings, *, server_url: str, data_dir: Path, **extra: str
+) -> dict[str, str]:
+    """A worker's whole environment: this process's, without any MANIEVAL_* setting, plus
+    the broker, the server's URL and the worker token. No database URL, no server secret."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MANIEVAL_")}
+    env |= {
+        "MANIEVAL_SERVER_URL": server_url,
+        "MANIEVAL_WORKER_TOKEN": settings.secret("worker_token"),
+        "MANIEVAL_BROKER_URL": settings.broker_url,
+        "MANIEVAL_CELERY_QUEUE": settings.celery_queue,
+        "MANIEVAL_ALLOW_LOCAL_POLICIES": "true",
+        "MANIEVAL_DATA_DIR": str(data_dir),
+        "PYTHONUNBUFFERED": "1",
+    }
+    env |= extra
+    keys = {k for k in env if k.startswith("MANIEVAL_")}
+    assert WORKER_KEYS <= keys <= WORKER_KEYS | OPTIONAL_KEYS, keys
+    assert not keys & SECRETS
+    assert settings.secret("secret_key") not in env.values()
+    assert settings.secret("seed_secret") not in env.values()
+    return env
+
+
+def celery_worker(
+    env: dict[str, str], *, queues: str, policies: Path, log: Path
+) -> subprocess.Popen[bytes]:
+    """`celery worker` in its own process group (killed as a whole), one task at a time."""
+    with log.open("ab") as out:
+        return subprocess.Popen(
+            [sys.executable, "-c", LAUNCHER, str(policies), "-A", "worker.celery_app", "worker",
+             "--pool", "solo", "--concurrency", "1", "--without-gossip", "--without-mingle",
+             "--without-heartbeat", "--loglevel", "INFO", "-Q", queues],
+            env=env, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+        )  # fmt: skip
+
+
+def wait_ready(process: subprocess.Popen[bytes], log: Path) -> None:
+    """Until the worker said it is ready (consuming its queue)."""
+    deadline = time.monotonic() + WORKER_START_S
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise AssertionError(f"the worker exited ({process.returncode}):\n{log.read_text()}")
+        if "ready." in log.read_text(errors="replace"):
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"the worker did not start in {WORKER_START_S} s:\n{log.read_text()}")
+
+
+@dataclass
+class Cluster:
+    """The server (in this process), its database, a private Redis and the workers."""
+
+    settings: Settings
+    service: Service
+    sessions: sessionmaker[Session]
+    redis: Redis
+    api: httpx.Client
+    policies: Path
+    work: Path
+    workers: list[subprocess.Popen[bytes]] = field(default_factory=list)
+    logs: dict[int, Path] = field(default_factory=dict)
+
+    @property
+    def reconcile_queue(self) -> str:
+        return f"reconcile-{self.redis.port}"
+
+    def environment(self, name: str, **extra: str) -> dict[str, str]:
+        return worker_environment(
+            self.settings, server_url=self.service.url, data_dir=self.work / name, **extra
+        )
+
+    def start_worker(
+        self, name: str | None = None, *, queues: str | None = None, wait: bool = True, **extra: str
+    ) -> subprocess.Popen[bytes]:
+        """A worker process; `name`: its stable MANIEVAL_WORKER_NAME (default: host-pid)."""
+        label = name or f"worker-{len(self.workers)}"
+        if name is not None:
+            extra["MANIEVAL_WORKER_NAME"] = name
+        env = self.environment(label, MANIEVAL_RECONCILE_QUEUE=self.reconcile_queue, **extra)
+        log = self.work / f"{label}-{len(self.workers)}.log"
+        process = celery_worker(
+            env, queues=queues or self.settings.celery_queue, policies=self.policies, log=log
+        )
+        self.workers.append(process)
+        self.logs[process.pid] = log
+        if wait:
+            wait_ready(process, log)
+        return process
+
+    def kill(self, process: subprocess.Popen[bytes]) -> None:
+        """SIGKILL the worker and everything it started (policy, simulator processes)."""
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+        process.wait(30)
+
+    def submit(
+        self, challenge: str = "server-tiny", image: str = "local:scripted", phase: str = "dev"
+    ) -> int:
+        r = self.api.post(
+            "/submissions", json={"challenge": challenge, "image": image, "phase": phase}
+        )
+        assert r.status_code == 202, r.text
+        return int(r.json()["id"])
+
+    def get(self, sid: int) -> dict[str, Any]:
+        r = self.api.get(f"/submissions/{sid}")
+        assert r.status_code == 200, r.text
+        body: dict[str, Any] = r.json()
+        return body
+
+    def wait_for(
+        self, sid: int, until: Callable[[dict[str, Any]], bool], timeout: float = 300
+    ) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        body = self.get(sid)
+        while not until(body):
+            if time.monotonic() > deadline:
+                raise AssertionError(f"submission {sid}: waited {timeout} s in vain: {body}")
+            time.sleep(0.2)
+            body = self.get(sid)
+        return body
+
+    def wait_state(self, sid: int, states: set[str], timeout: float = 300) -> dict[str, Any]:
+        return self.wait_for(sid, lambda body: body["state"] in states, timeout)
+
+    def history(self, sid: int) -> list[tuple[int, State, Cause | None]]:
+        with self.sessions() as db:
+            rows = db.execute(
+                select(Transition.attempt, Transition.to_state, Transition.cause)
+                .where(Transition.submission_id == sid)
+                .order_by(Transition.id)
+            ).all()
+        return [(attempt, state, cause) for attempt, state, cause in rows]
+
+    def states(self, sid: int) -> list[State]:
+        return [state for _, state, _ in self.history(sid)]
+
+    def submission(self, sid: int) -> Submission:
+        with self.sessions() as db:
+            found = db.get(Submission, sid)
+            assert found is not None
+            return found
+
+    def send(self, task: str, queue: str, *args: object) -> None:
+        """Send a task by name, as Celery beat or the server does."""
+        app = Celery("manieval-test", broker=self.settings.broker_url)
+        try:
+            app.send_task(task, args=list(args), queue=queue)
+        finally:
+            app.close()
 
 
 @pytest.fixture
@@ -38,166 +299,275 @@ def redis(tmp_path: Path) -> Iterator[Redis]:
 
 
 @pytest.fixture
-def env(tmp_path: Path, redis: Redis) -> dict[str, str]:
-    return {
-        **os.environ,
-        "MANIEVAL_DEV_MODE": "true",
-        "MANIEVAL_DATA_DIR": str(tmp_path / "data"),
-        "MANIEVAL_ALLOW_LOCAL_POLICIES": "true",
-        "MANIEVAL_QUEUE": "celery",
-        "MANIEVAL_BROKER_URL": redis.url,
-        "MANIEVAL_CELERY_QUEUE": f"test-{redis.port}",
-    }
-
-
-@pytest.fixture
-def start_worker(env: dict[str, str]) -> Iterator[Callable[[], subprocess.Popen[bytes]]]:
-    workers: list[subprocess.Popen[bytes]] = []
-
-    def start() -> subprocess.Popen[bytes]:
-        process = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "celery",
-                "-A",
-                "worker.celery_app",
-                "worker",
-                "--pool",
-                "solo",
-                "--concurrency",
-                "1",
-                "--loglevel",
-                "INFO",
-                "--without-gossip",
-                "--without-mingle",
-                "-Q",
-                env["MANIEVAL_CELERY_QUEUE"],
-            ],
-            env=env,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            start_new_session=True,
-        )
-        workers.append(process)
-        return process
-
-    yield start
-    for process in workers:
-        if process.poll() is None:
-            os.killpg(process.pid, signal.SIGKILL)
-            process.wait(10)
-
-
-@pytest.fixture
-def api(env: dict[str, str], monkeypatch: pytest.MonkeyPatch) -> Iterator[TestClient]:
-    for key, value in env.items():
-        if key.startswith("MANIEVAL_"):
-            monkeypatch.setenv(key, value)
-    settings = Settings()
+def cluster(
+    tmp_path: Path,
+    redis: Redis,
+    postgres_url: str,
+    policies: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> Iterator[Cluster]:
+    monkeypatch.setattr(evaluator.bundled, "EXAMPLES_DIR", policies)  # the server checks names
+    url, drop = fresh_database(postgres_url)
+    settings = Settings(
+        dev_mode=True,
+        data_dir=tmp_path / "server",
+        database_url=url,
+        queue="celery",
+        broker_url=redis.url,
+        celery_queue=f"test-{redis.port}",
+        allow_local_policies=True,
+        cookie_secure=False,
+        register_rate="1000/minute",
+        login_rate="1000/minute",
+        token_rate="1000/minute",
+        submit_rate="1000/minute",
+        leaderboard_max_age=0,
+    )
     sessions = embedded_database(settings, quota_concurrent=5, quota_per_day=50)
-    app = create_app(settings, sessions=sessions, background=False)
-    app.state.sessions = sessions
-    with TestClient(app) as client:
-        client.post(
-            f"{API}/users",
-            json={"username": "alice", "email": "a@example.org", "password": PASSWORD},
-        )
-        client.headers.update(token_for(client, "alice"))
-        yield client
+    add_challenge(settings, "server-budget", **{"budget_s: 300": "budget_s: 2"})
+    service = Service(settings, port=free_port(), sessions=sessions)
+    # Image submissions are pinned by a registry stand-in (the registry has its own tests).
+    cast(FastAPI, service.server.config.app).state.services.resolve = fake_resolve_for(settings)
+    assert service.start(), "the server did not start"
+    api = httpx.Client(base_url=f"{service.url}/api/v1", timeout=60)
+    r = api.post(
+        "/users", json={"username": "alice", "email": "a@example.org", "password": PASSWORD}
+    )
+    assert r.status_code == 201, r.text
+    r = api.post("/auth/token", json={"login": "alice", "password": PASSWORD})
+    assert r.status_code == 201, r.text
+    api.headers["Authorization"] = f"Bearer {r.json()['token']}"
+    work = tmp_path / "workers"
+    work.mkdir()
+    cluster = Cluster(settings, service, sessions, redis, api, policies, work)
+    try:
+        yield cluster
+    finally:
+        for process in cluster.workers:
+            cluster.kill(process)
+        api.close()
+        service.stop()
+        sessions.kw["bind"].dispose()
+        drop()
 
 
-def submit(client: TestClient, challenge: str = "server-tiny") -> int:
-    r = client.post(f"{API}/submissions", json={"challenge": challenge, "image": "local:scripted"})
-    assert r.status_code == 202, r.text
-    return int(r.json()["id"])
+def children(process: subprocess.Popen[bytes]) -> list[int]:
+    """The processes a worker started, and theirs (an evaluation's policy and simulator)."""
+    parents: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:  # gone meanwhile
+                continue
+            parents[int(entry.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+    found, frontier = [], [process.pid]
+    while frontier:
+        below = [pid for pid, parent in parents.items() if parent in frontier]
+        found += below
+        frontier = below
+    return found
 
 
-def wait_for(client: TestClient, sid: int, states: set[str], timeout: float = 180) -> dict:  # type: ignore[type-arg]
+def environment_of(process: subprocess.Popen[bytes]) -> dict[str, str]:
+    """The environment the running process really has."""
+    raw = Path(f"/proc/{process.pid}/environ").read_bytes()
+    pairs = (item.decode().partition("=") for item in raw.split(b"\0") if item)
+    return {key: value for key, _, value in pairs}
+
+
+def wait_busy(process: subprocess.Popen[bytes], timeout: float = STOP_S) -> None:
+    """Until the worker evaluates (its simulator processes are up)."""
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        body = client.get(f"{API}/submissions/{sid}").json()
-        if body["state"] in states:
-            return body  # type: ignore[no-any-return]
+    while not children(process):
+        if time.monotonic() > deadline:
+            tree = subprocess.run(["ps", "-eo", "pid,ppid,pgid,args"], capture_output=True)
+            raise AssertionError(f"worker {process.pid} evaluates nothing:\n{tree.stdout.decode()}")
         time.sleep(0.2)
-    raise AssertionError(f"submission {sid} never reached {states}: {body}")
 
 
-def test_a_celery_worker_takes_a_submission_to_succeeded(
-    api: TestClient, start_worker: Callable[[], subprocess.Popen[bytes]]
+def wait_idle(process: subprocess.Popen[bytes], timeout: float = STOP_S) -> None:
+    """Until the worker runs no evaluation any more (none of its processes is left)."""
+    deadline = time.monotonic() + timeout
+    while children(process):
+        assert time.monotonic() < deadline, f"the worker still evaluates: {children(process)}"
+        time.sleep(0.2)
+
+
+def test_a_worker_without_database_or_secrets_ends_submissions_in_every_state(
+    cluster: Cluster,
 ) -> None:
-    start_worker()
-    sid = submit(api)
-    body = wait_for(api, sid, FINAL)
+    worker = cluster.start_worker()
+    env = environment_of(worker)
+    assert {k for k in env if k.startswith("MANIEVAL_")} == WORKER_KEYS | {
+        "MANIEVAL_RECONCILE_QUEUE"
+    }
+    succeeded = cluster.submit()
+    failed = cluster.submit(image="local:crasher")
+    timed_out = cluster.submit("server-budget", image="local:sleeper")
+    error = cluster.submit(image="127.0.0.1:5000/alice/policy:v1")  # no engine on this worker
+
+    body = cluster.wait_state(succeeded, FINAL)
     assert body["state"] == "succeeded", body
     assert {t["condition"] for t in body["tasks"]} == {"nominal", "obs_noise"}
+    assert body["score"] is not None
+    body = cluster.wait_state(failed, FINAL)
+    assert body["state"] == "failed", body
+    assert "exit code 3" in body["reason"]
+    assert "out of luck" in cluster.api.get(f"/submissions/{failed}/logs").json()["log_tail"]
+    body = cluster.wait_state(timed_out, FINAL)
+    assert body["state"] == "timed_out", body
+    assert "budget" in body["reason"]
+    body = cluster.wait_state(error, FINAL)
+    assert body["state"] == "error", body
+    assert "no container engine is configured" in body["reason"]
+    started = [State.QUEUED, State.LAUNCHING, State.RUNNING]
+    assert cluster.states(succeeded) == [*started, State.SUCCEEDED]
+    assert cluster.states(failed) == [*started, State.FAILED]
+    assert cluster.states(timed_out) == [*started, State.TIMED_OUT]
+    assert cluster.states(error) == [State.QUEUED, State.LAUNCHING, State.ERROR]  # never ran
+    for sid in (succeeded, failed, timed_out, error):
+        assert str(cluster.submission(sid).worker).endswith(f"-{worker.pid}")
+    assert not list((cluster.work / "worker-0" / "spool").glob("*.json"))  # all delivered
 
 
-def test_the_same_wake_up_twice_runs_one_evaluation(
-    api: TestClient, start_worker: Callable[[], subprocess.Popen[bytes]], env: dict[str, str]
-) -> None:
-    sid = submit(api)
-    queue = CeleryQueue(Settings())
+def test_a_cancel_mid_run_stops_the_worker_and_stays_cancelled(cluster: Cluster) -> None:
+    worker = cluster.start_worker()
+    sid = cluster.submit("server-long", image="local:sleeper")  # minutes, unless stopped
+    cluster.wait_state(sid, {"running"})
+    wait_busy(worker)
+    r = cluster.api.post(f"/submissions/{sid}/cancel")
+    assert r.status_code == 200, r.text
+    assert r.json()["state"] == "cancelled"
+    wait_idle(worker)  # the worker stopped the evaluation
+    after = cluster.submit()  # and takes the next one
+    assert cluster.wait_state(after, FINAL)["state"] == "succeeded"
+    body = cluster.get(sid)
+    assert body["state"] == "cancelled", body
+    assert body["reason"] == "cancelled by its owner"
+    assert cluster.states(sid) == [State.QUEUED, State.LAUNCHING, State.RUNNING, State.CANCELLED]
+
+
+def test_the_same_wake_up_twice_runs_one_evaluation(cluster: Cluster) -> None:
+    sid = cluster.submit()  # the server sends its wake-up; no worker runs yet
+    queue = CeleryQueue(cluster.settings.broker_url, cluster.settings.celery_queue)
     queue.enqueue(sid, 1)
-    queue.enqueue(sid, 1)  # a duplicate delivery
-    start_worker()
-    assert wait_for(api, sid, FINAL)["state"] == "succeeded"
-    time.sleep(2)  # let the duplicates be consumed
-    sessions = api.app.state.sessions  # type: ignore[attr-defined]
-    with sessions() as db:
-        launches = db.scalars(
-            select(Transition).where(
-                Transition.submission_id == sid, Transition.to_state == State.LAUNCHING
-            )
-        ).all()
-        assert len(launches) == 1
+    queue.enqueue(sid, 1)  # duplicate deliveries
+    broker = redis_client.Redis.from_url(cluster.settings.broker_url)
+    assert broker.llen(cluster.settings.celery_queue) == 3
+    cluster.start_worker()
+    assert cluster.wait_state(sid, FINAL)["state"] == "succeeded"
+    deadline = time.monotonic() + 120
+    while broker.llen(cluster.settings.celery_queue) or broker.hlen("unacked"):
+        assert time.monotonic() < deadline, "the duplicates were never consumed"
+        time.sleep(0.2)
+    broker.close()
+    assert cluster.states(sid) == [State.QUEUED, State.LAUNCHING, State.RUNNING, State.SUCCEEDED]
 
 
-def test_a_killed_worker_is_reconciled_and_the_run_resumes_elsewhere(
-    api: TestClient, start_worker: Callable[[], subprocess.Popen[bytes]]
-) -> None:
-    first = start_worker()
-    sid = submit(api, "server-long")
-    wait_for(api, sid, {"running"})
-    os.killpg(first.pid, signal.SIGKILL)  # the worker and its policy process die mid-run
-    first.wait(10)
-    sessions = api.app.state.sessions  # type: ignore[attr-defined]
-    report = reconcile(sessions, CeleryQueue(Settings()), now=utcnow() + timedelta(minutes=4))
-    assert report.lost == [sid]
-    assert report.requeued == [sid]
-    start_worker()
-    body = wait_for(api, sid, {"running"})
-    assert body["attempt"] == 2
-    cancelled = api.post(f"{API}/submissions/{sid}/cancel")
+def age(cluster: Cluster, sid: int, by: timedelta = timedelta(minutes=10)) -> None:
+    """As if the attempt's worker had not reported for `by` (past the heartbeat timeout)."""
+    with cluster.sessions.begin() as db:
+        db.execute(
+            update(Submission)
+            .where(Submission.id == sid)
+            .values(heartbeat_at=utcnow() - by, updated_at=utcnow() - by)
+        )
+
+
+def running_at(body: dict[str, Any], attempt: int) -> datetime:
+    return next(
+        datetime.fromisoformat(t["at"])
+        for t in body["transitions"]
+        if t["attempt"] == attempt and t["to_state"] == "running"
+    )
+
+
+def test_a_killed_worker_is_reconciled_and_the_run_resumes_elsewhere(cluster: Cluster) -> None:
+    first = cluster.start_worker()
+    sid = cluster.submit("server-long")
+    cluster.wait_state(sid, {"running"})
+    assert cluster.submission(sid).worker.endswith(f"-{first.pid}")  # type: ignore[union-attr]
+    second = cluster.start_worker()  # another machine, idle
+    cluster.start_worker(queues=cluster.reconcile_queue)  # the reconciler's own worker
+    killed_at, killed = utcnow(), time.monotonic()
+    cluster.kill(first)  # the worker and its policy and simulator processes die mid-run
+    # Its heartbeat stops; skip the 3 minutes after which the reconciler calls it lost.
+    age(cluster, sid)
+    cluster.send(RECONCILE, cluster.reconcile_queue)
+    body = cluster.wait_for(sid, lambda b: b["attempt"] == 2 and b["state"] == "running")
+    observed = time.monotonic() - killed
+    recorded = (running_at(body, 2) - killed_at).total_seconds()
+    print(
+        f"\nSIGKILL to the new attempt's `running` (reconciler, heartbeat timeout skipped): "
+        f"{observed:.1f} s observed, {recorded:.1f} s recorded"
+    )
+    assert cluster.submission(sid).worker.endswith(f"-{second.pid}")  # type: ignore[union-attr]
+    cancelled = cluster.api.post(f"/submissions/{sid}/cancel")
     assert cancelled.json()["state"] == "cancelled"
-    with sessions() as db:
-        s = db.get(Submission, sid)
-        assert s is not None
-        states = db.scalars(
-            select(Transition.to_state)
-            .where(Transition.submission_id == sid)
-            .order_by(Transition.id)
-        ).all()
-    assert states == [
-        State.QUEUED,
-        State.LAUNCHING,
-        State.RUNNING,
-        State.ERROR,
-        State.QUEUED,
-        State.LAUNCHING,
-        State.RUNNING,
-        State.CANCELLED,
+    assert cluster.history(sid) == [
+        (1, State.QUEUED, None),
+        (1, State.LAUNCHING, None),
+        (1, State.RUNNING, None),
+        (1, State.ERROR, Cause.WORKER_LOST),
+        (2, State.QUEUED, None),
+        (2, State.LAUNCHING, None),
+        (2, State.RUNNING, None),
+        (2, State.CANCELLED, None),
     ]
+    wait_idle(second)
 
 
-def test_redis_restarted_during_a_run(
-    api: TestClient, start_worker: Callable[[], subprocess.Popen[bytes]], redis: Redis
+def test_a_worker_restarted_under_its_name_ends_its_lost_run_at_once(cluster: Cluster) -> None:
+    first = cluster.start_worker("node-a")
+    sid = cluster.submit("server-long")
+    cluster.wait_state(sid, {"running"})
+    killed_at, killed = utcnow(), time.monotonic()
+    cluster.kill(first)
+    again = cluster.start_worker("node-a", wait=False)  # a StatefulSet pod comes back
+    body = cluster.wait_for(sid, lambda b: b["attempt"] == 2 and b["state"] == "running")
+    observed = time.monotonic() - killed
+    recorded = (running_at(body, 2) - killed_at).total_seconds()
+    print(
+        f"\nSIGKILL to the new attempt's `running` (restarted under its name, worker start-up "
+        f"included): {observed:.1f} s observed, {recorded:.1f} s recorded"
+    )
+    assert cluster.submission(sid).worker == "node-a"
+    cluster.api.post(f"/submissions/{sid}/cancel")
+    assert [(a, s, c) for a, s, c in cluster.history(sid) if s == State.ERROR] == [
+        (1, State.ERROR, Cause.WORKER_RESTARTED)
+    ]
+    wait_idle(again)
+
+
+def test_the_reconciler_runs_on_its_own_queue_while_every_worker_is_busy(
+    cluster: Cluster,
 ) -> None:
-    start_worker()
-    sid = submit(api)
-    wait_for(api, sid, {"running", "succeeded"})
-    redis.stop()
-    redis.start()  # empty: it keeps nothing on disk
-    assert wait_for(api, sid, FINAL)["state"] == "succeeded"
-    second = submit(api)  # the worker reconnected and takes new work
-    assert wait_for(api, second, FINAL, timeout=240)["state"] == "succeeded"
+    busy = cluster.start_worker()  # the only evaluation worker
+    long_run = cluster.submit("server-long", image="local:sleeper")  # minutes
+    cluster.wait_state(long_run, {"running"})
+    stale = cluster.submit()  # claimed by a worker that then vanished
+    with cluster.sessions() as db:
+        assert claim_next(db, worker="vanished", max_running_per_user=5) == (stale, 1)
+        assert report_running(db, stale, 1, reason="evaluating", deadline_s=3600)
+        db.commit()
+    age(cluster, stale)
+    cluster.start_worker(queues=cluster.reconcile_queue)
+    cluster.send(RECONCILE, cluster.reconcile_queue)
+    cluster.wait_for(stale, lambda b: b["attempt"] == 2)
+    assert (1, State.ERROR, Cause.WORKER_LOST) in cluster.history(stale)
+    assert cluster.get(long_run)["state"] == "running"  # the pass did not wait for it
+    wait_busy(busy, timeout=0)
+    cluster.api.post(f"/submissions/{long_run}/cancel")
+    assert cluster.wait_state(stale, FINAL)["state"] == "succeeded"  # run again, once
+
+
+def test_redis_restarted_during_a_run(cluster: Cluster) -> None:
+    cluster.start_worker()
+    sid = cluster.submit()
+    cluster.wait_state(sid, {"running", "succeeded"})
+    cluster.redis.stop()
+    cluster.redis.start()  # empty: it keeps nothing on disk
+    assert cluster.wait_state(sid, FINAL)["state"] == "succeeded"
+    second = cluster.submit()  # the worker reconnected and takes new work
+    assert cluster.wait_state(second, FINAL, timeout=240)["state"] == "succeeded"

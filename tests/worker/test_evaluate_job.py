@@ -250,6 +250,25 @@ def test_the_command_exits_2_on_a_bad_job_spec():
     assert done.exit_code == 2
 
 
+def test_the_command_reads_the_job_spec_from_the_secrets_file(tmp_path: Path):
+    """On Kubernetes the evaluation comes in a file of the Job's Secret volume, not the env."""
+    app = typer.Typer()
+    app.command()(evaluate_job)
+    runner = CliRunner()
+    mounted = tmp_path / "evaluation.json"
+    mounted.write_text(tiny_evaluation().canonical_json())
+    # Read and planned: only then is the shard index checked against the shard count.
+    env = {"MANIEVAL_JOB_SPEC_FILE": str(mounted), "MANIEVAL_SHARDS": "2"}
+    done = runner.invoke(app, [], env=env | {"JOB_COMPLETION_INDEX": "2"})
+    assert done.exit_code == 2
+    assert "shard index 2 is not below the shard count 2" in done.output
+    mounted.write_text('{"phase": "dev"}')
+    done = runner.invoke(app, [], env=env | {"JOB_COMPLETION_INDEX": "0"})
+    assert (done.exit_code, "bad job spec" in done.output) == (2, True)
+    done = runner.invoke(app, [], env={"MANIEVAL_JOB_SPEC_FILE": str(tmp_path / "absent")})
+    assert (done.exit_code, "bad job spec" in done.output) == (2, True)
+
+
 def start_policy(endpoint_dir: Path) -> subprocess.Popen[bytes]:
     """The policy container: the scripted example, told only where the socket will be."""
     return subprocess.Popen(

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import base64
 import io
+import json
 from collections.abc import Iterator
 from datetime import UTC, datetime
 
@@ -13,6 +15,7 @@ from evaluator.job import ShardReport, result_from_logs, write_document
 from evaluator.plan import EvaluationPlan
 from evaluator.results import EpisodeResult, EvaluationResult
 from evaluator.runner import ShardOutcome
+from server.kit.settings import Settings
 from tests.worker.k8s_double import (
     NAMESPACE,
     ApiServerDouble,
@@ -20,8 +23,17 @@ from tests.worker.k8s_double import (
     make_spec,
     running_apiserver,
 )
-from worker.kubernetes.client import Backoff, JobConflict, JobStatus, KubernetesError, StartedJob
+from tests.workers import worker_settings
+from worker.kubernetes.client import (
+    Backoff,
+    JobConflict,
+    JobStatus,
+    KubernetesError,
+    PodView,
+    StartedJob,
+)
 from worker.kubernetes.manifest import build_job, job_labels
+from worker.kubernetes.watch import kubernetes_executor
 
 STARTED = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
 
@@ -296,3 +308,115 @@ def test_list_jobs_follows_pagination_and_reports_each_attempt(apiserver: ApiSer
     assert next(r for r in refs if r.submission_id == 3).status == JobStatus("running")
     lists = [r for r in apiserver.requests if r.method == "GET" and r.path.endswith("/jobs")]
     assert len(lists) == 2
+
+
+def test_the_clients_own_retries_are_off_the_backoff_is_the_only_one(
+    settings: Settings, apiserver: ApiServerDouble
+):
+    wsettings = worker_settings(settings, k8s_api_url=apiserver.host, k8s_namespace=NAMESPACE)
+    executor = kubernetes_executor(wsettings)
+    sleeps: list[float] = []
+    executor.sleep = sleeps.append
+    try:
+        apiserver.fail_next("GET", "/jobs/eval-7-1", 503, retry_after=0)
+        apiserver.fail_next("GET", "/jobs/eval-7-1", 429, retry_after=0)
+        assert executor.status(7, 1).phase == "missing"
+    finally:
+        executor.close()
+    # urllib3 retries answers with a Retry-After itself, unseen, unless it is told not to
+    assert len(sleeps) == 2
+    reads = [r for r in apiserver.requests if r.path.endswith("/jobs/eval-7-1")]
+    assert len(reads) == 3
+
+
+def test_an_unreachable_api_server_is_retried_with_backoff_only(apiserver: ApiServerDouble):
+    sleeps: list[float] = []
+    executor = executor_for(apiserver, sleeps=sleeps, attempts=3)
+    executor.api.configuration.host = "http://127.0.0.1:1"  # nothing listens there
+    with pytest.raises(KubernetesError, match="cannot be reached"):
+        executor.status(7, 1)
+    assert sleeps == [0.25, 0.5]
+
+
+def test_an_expired_continue_token_lists_again_from_the_start(apiserver: ApiServerDouble):
+    for submission in range(1, 202):
+        apiserver.put_job(build_job(make_spec(submission_id=submission)))
+    apiserver.expire_continue = True  # 410 Gone for the second page
+    refs = executor_for(apiserver).list_jobs()
+    assert sorted(r.submission_id for r in refs) == list(range(1, 202))  # no page twice
+    lists = [r for r in apiserver.requests if r.method == "GET" and r.path.endswith("/jobs")]
+    assert len(lists) == 4  # page 1, page 2 (410), page 1 again, page 2
+
+
+def test_a_job_beyond_the_quota_is_refused_with_the_clusters_reason(apiserver: ApiServerDouble):
+    apiserver.job_quota = 1
+    executor = executor_for(apiserver)
+    executor.start(make_spec(submission_id=1))
+    with pytest.raises(KubernetesError, match="exceeded quota") as caught:
+        executor.start(make_spec(submission_id=2))
+    assert caught.value.status == 403
+    assert len(apiserver.created_bodies()) == 2  # a refusal is not retried
+
+
+def test_the_pods_say_what_the_cluster_did_to_them(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    assert executor.pods(7, 1) == PodView()
+    (pod,) = apiserver.unschedulable(NAMESPACE, "eval-7-1")
+    view = executor.pods(7, 1)
+    assert view.unschedulable == "0/3 nodes are available: 3 Insufficient nvidia.com/gpu."
+    assert (view.alive, view.names, view.disrupted) == ({pod}, {pod}, None)
+    replacement = apiserver.evict(NAMESPACE, "eval-7-1")  # deleted, and replaced
+    assert executor.pods(7, 1).names == {replacement}
+    apiserver.lose_node(NAMESPACE, "eval-7-1")
+    assert "(DeletionByTaintManager: Taint manager" in str(executor.pods(7, 1).disrupted)
+
+
+def test_the_quotas_refusal_of_a_pod_is_in_the_jobs_events(apiserver: ApiServerDouble):
+    apiserver.pod_quota = 0
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    executor.start(make_spec(submission_id=8))
+    assert executor.events(7, 1) == []
+    assert apiserver.run(NAMESPACE, "eval-7-1") == []
+    apiserver.run(NAMESPACE, "eval-8-1")
+    (warning,) = executor.events(7, 1)  # only this Job's
+    assert warning.startswith('FailedCreate: Error creating: pods "eval-7-1-')
+    assert "exceeded quota: eval-quota" in warning
+    assert executor.pods(7, 1).count == 0
+
+
+def test_the_evaluation_travels_in_a_secret_the_job_owns_and_takes_along(
+    apiserver: ApiServerDouble,
+):
+    executor = executor_for(apiserver)
+    spec = make_spec()
+    executor.start(spec)
+    job = apiserver.jobs[(NAMESPACE, "eval-7-1")]
+    secret = apiserver.secrets[(NAMESPACE, "eval-7-1-evaluation")]
+    assert secret["metadata"]["ownerReferences"] == [
+        {"apiVersion": "batch/v1", "kind": "Job", "name": "eval-7-1", "uid": job["metadata"]["uid"]}
+    ]
+    document = base64.b64decode(secret["data"]["evaluation.json"]).decode()
+    assert document == spec.evaluation.canonical_json()
+    assert document not in json.dumps(job)
+    posts = [r.path for r in apiserver.requests if r.method == "POST"]
+    assert posts == [
+        f"/apis/batch/v1/namespaces/{NAMESPACE}/jobs",
+        f"/api/v1/namespaces/{NAMESPACE}/secrets",
+    ]
+    assert executor.cancel(7, 1)
+    assert apiserver.secrets == {}  # the garbage collector took it with its owner
+
+
+def test_an_adopted_job_gets_its_secret_if_its_creator_died_before_making_it(
+    apiserver: ApiServerDouble,
+):
+    executor = executor_for(apiserver)
+    apiserver.put_job(build_job(make_spec()))  # created, then the worker died
+    assert executor.start(make_spec()).adopted is True
+    secret = apiserver.secrets[(NAMESPACE, "eval-7-1-evaluation")]
+    uid = apiserver.jobs[(NAMESPACE, "eval-7-1")]["metadata"]["uid"]
+    assert secret["metadata"]["ownerReferences"][0]["uid"] == uid
+    assert executor.start(make_spec()).adopted is True  # and again: the Secret exists (409)
+    assert len(apiserver.secrets) == 1

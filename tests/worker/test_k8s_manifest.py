@@ -6,6 +6,7 @@ import copy
 import json
 import re
 from collections.abc import Callable
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import kubernetes_validate
@@ -14,18 +15,25 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from kubernetes_validate.utils import latest_version
 
-from evaluator.job import ENDPOINT_DIR, JOB_SPEC_ENV, SHARDS_ENV, EvaluationJob
+from evaluator.job import ENDPOINT_DIR, JOB_SPEC_ENV, JOB_SPEC_FILE_ENV, SHARDS_ENV, EvaluationJob
+from internal_api.schemas import Assignment
 from manieval_sdk.serve import ENDPOINT_ENV
+from server.kit.settings import Settings
 from tests.worker.k8s_double import TINY_SUITE, make_spec, tiny_evaluation
+from tests.workers import worker_settings
+from worker.containers import ContainerLimits, container_config
 from worker.kubernetes.manifest import (
     GPU_RESOURCE,
     MAX_PAYLOAD_BYTES,
+    POLICY_UID,
     JobSpec,
     Resources,
     active_deadline_for,
     build_job,
     build_network_policy,
+    build_secret,
 )
+from worker.kubernetes.watch import job_spec
 
 Json = dict[str, Any]
 VERSIONS = ["1.30", latest_version()]
@@ -35,6 +43,22 @@ VARIANTS: dict[str, Json] = {
     "gpu": {"gpu": True},
     "gvisor": {"runtime_class_name": "gvisor"},
     "indexed-gpu-gvisor": {"shards": 4, "gpu": True, "runtime_class_name": "gvisor"},
+    "node-pool": {
+        "node_selector": (("manieval.io/pool", "eval"), ("kubernetes.io/arch", "amd64")),
+        "tolerations": (
+            (("key", "manieval.io/eval"), ("operator", "Exists"), ("effect", "NoSchedule")),
+            (
+                ("key", "gpu"),
+                ("operator", "Equal"),
+                ("value", "true"),
+                ("effect", "NoExecute"),
+                ("tolerationSeconds", 60),
+            ),
+        ),
+        "priority_class_name": "manieval-eval",
+        "image_pull_secrets": ("registry-pull", "mirror-pull"),
+        "runtime_class_name": "gvisor",
+    },
 }
 
 # Pod Security Standards, "restricted" (which includes "baseline"), as of Kubernetes 1.30.
@@ -258,17 +282,54 @@ def test_no_service_account_token_and_no_service_links():
     assert "serviceAccountName" not in pod
 
 
-def test_the_policy_container_gets_only_the_endpoint_variable_and_the_socket_volume():
+def test_the_policy_container_gets_only_what_the_docker_executor_gives_it():
     manifest = build_job(make_spec())
     policy = container(manifest, "policy")
-    assert policy["env"] == [{"name": ENDPOINT_ENV, "value": f"unix://{ENDPOINT_DIR}/policy.sock"}]
+    assert policy["env"] == [
+        {"name": ENDPOINT_ENV, "value": f"unix://{ENDPOINT_DIR}/policy.sock"},
+        {"name": "HOME", "value": "/tmp"},
+        {"name": "PYTHONUNBUFFERED", "value": "1"},
+    ]
     assert "envFrom" not in policy
     assert policy["volumeMounts"] == [
-        {"name": "endpoint", "mountPath": "/run/manieval", "readOnly": True}
+        {"name": "endpoint", "mountPath": "/run/manieval", "readOnly": True},
+        {"name": "policy-tmp", "mountPath": "/tmp"},
     ]
     volumes = {v["name"]: v for v in pod_of(manifest)["volumes"]}
     assert volumes["endpoint"]["emptyDir"] == {"medium": "Memory", "sizeLimit": "1Mi"}
-    assert all("sizeLimit" in v["emptyDir"] for v in volumes.values())
+    assert all("sizeLimit" in v["emptyDir"] for v in volumes.values() if "emptyDir" in v)
+    assert {n for n, v in volumes.items() if "emptyDir" not in v} == {"evaluation"}
+
+
+def test_the_policy_runs_as_under_the_docker_executor():
+    """Same uid, a writable size-limited /tmp, a read-only root: a policy that passes
+    `manieval evaluate --image` finds the same on the cluster."""
+    limits = ContainerLimits()
+    config = container_config(
+        image="img@sha256:" + "ab" * 32,
+        endpoint="unix:///run/manieval/policy.sock",
+        socket_dir=Path("/tmp/sock"),
+        name="p",
+        labels={},
+        limits=limits,
+    )
+    manifest = build_job(make_spec())
+    policy = container(manifest, "policy")
+    assert config["user"] == f"{POLICY_UID}:{POLICY_UID}"
+    assert policy["securityContext"]["runAsUser"] == POLICY_UID == 65532
+    assert policy["securityContext"]["readOnlyRootFilesystem"] is config["read_only"] is True
+    assert config["tmpfs"]["/tmp"].startswith(f"size={limits.tmpfs_mib}m")
+    volumes = {v["name"]: v for v in pod_of(manifest)["volumes"]}
+    assert volumes["policy-tmp"]["emptyDir"] == {
+        "medium": "Memory",
+        "sizeLimit": f"{limits.tmpfs_mib}Mi",
+    }
+    env = {e["name"]: e["value"] for e in policy["env"]}
+    assert {k: env[k] for k in ("HOME", "PYTHONUNBUFFERED")} == {
+        k: config["environment"][k] for k in ("HOME", "PYTHONUNBUFFERED")
+    }
+    evaluator = container(manifest, "evaluator")
+    assert all(m["name"] != "policy-tmp" for m in evaluator["volumeMounts"])
 
 
 def test_the_policy_is_a_sidecar_the_kubelet_stops_when_the_evaluator_exits():
@@ -291,11 +352,24 @@ def test_the_containers_run_as_different_users_of_one_group():
     )
 
 
+def evaluation_read_by(manifest: Json, secret: Json) -> EvaluationJob:
+    """What the evaluator reads: the file its env names, in the Secret volume mounted there."""
+    evaluator = container(manifest, "evaluator")
+    env = {e["name"]: e["value"] for e in evaluator["env"]}
+    path = PurePosixPath(env[JOB_SPEC_FILE_ENV])
+    (mount,) = [m for m in evaluator["volumeMounts"] if m["mountPath"] == str(path.parent)]
+    assert mount["readOnly"] is True
+    (volume,) = [v for v in pod_of(manifest)["volumes"] if v["name"] == mount["name"]]
+    assert volume["secret"]["secretName"] == secret["metadata"]["name"]
+    return EvaluationJob.model_validate_json(secret["stringData"][path.name])
+
+
 def test_the_evaluator_gets_the_evaluation_its_shard_count_and_the_shared_socket_dir():
     spec = make_spec(shards=2)
-    evaluator = container(build_job(spec), "evaluator")
+    manifest = build_job(spec)
+    evaluator = container(manifest, "evaluator")
     env = {e["name"]: e["value"] for e in evaluator["env"]}
-    assert EvaluationJob.model_validate_json(env[JOB_SPEC_ENV]) == spec.evaluation
+    assert evaluation_read_by(manifest, build_secret(spec, job_uid="u")) == spec.evaluation
     assert env[SHARDS_ENV] == "2"
     assert env["MANIEVAL_ENDPOINT_DIR"] == ENDPOINT_DIR
     assert env["MANIEVAL_POLICY"] == spec.policy_image
@@ -303,6 +377,46 @@ def test_the_evaluator_gets_the_evaluation_its_shard_count_and_the_shared_socket
     mounts = {m["mountPath"]: m for m in evaluator["volumeMounts"]}
     assert ENDPOINT_DIR.startswith(mounts["/run/manieval"]["mountPath"] + "/")
     assert "readOnly" not in mounts["/run/manieval"]
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+def test_the_evaluation_secret_validates_strictly_and_is_owned_by_the_job(version: str):
+    spec = make_spec()
+    secret = build_secret(spec, job_uid="5b0e8c55-0000-4000-8000-000000000000")
+    assert kubernetes_validate.validate(secret, version, strict=True)
+    meta = secret["metadata"]
+    assert (meta["name"], meta["namespace"]) == ("eval-7-1-evaluation", spec.namespace)
+    assert meta["labels"] == build_job(spec)["metadata"]["labels"]
+    assert meta["ownerReferences"] == [
+        {
+            "apiVersion": "batch/v1",
+            "kind": "Job",
+            "name": "eval-7-1",
+            "uid": "5b0e8c55-0000-4000-8000-000000000000",
+        }
+    ]
+    assert secret["immutable"] is True
+    assert secret == build_secret(spec, job_uid="5b0e8c55-0000-4000-8000-000000000000")
+
+
+def test_the_seeds_are_in_no_job_or_pod_object_only_in_the_evaluators_secret_volume():
+    evaluation = tiny_evaluation(seeds=(987654321, 123456789))
+    spec = make_spec(evaluation=evaluation)
+    manifest = build_job(spec)
+    text = json.dumps(manifest)
+    assert "987654321" not in text
+    assert "123456789" not in text
+    assert f'"{JOB_SPEC_ENV}"' not in text  # the old way: the whole document in the env
+    assert "987654321" in json.dumps(build_secret(spec, job_uid="u"))
+    volumes = {v["name"] for v in pod_of(manifest)["volumes"] if "secret" in v}
+    assert volumes == {"evaluation"}
+    mounted = {
+        c["name"]
+        for c in containers_of(pod_of(manifest))
+        for m in c["volumeMounts"]
+        if m["name"] == "evaluation"
+    }
+    assert mounted == {"evaluator"}  # never the policy
 
 
 def test_shards_make_an_indexed_job_with_one_pod_per_shard_at_once():
@@ -337,6 +451,75 @@ def test_the_runtime_class_is_set_on_the_pod_so_it_covers_both_containers():
     assert pod["runtimeClassName"] == "gvisor"
 
 
+def test_node_pool_settings_are_set_on_the_pod_field_by_field():
+    spec = make_spec(**VARIANTS["node-pool"])
+    pod = pod_of(build_job(spec))
+    assert pod["nodeSelector"] == {"manieval.io/pool": "eval", "kubernetes.io/arch": "amd64"}
+    assert pod["tolerations"] == [
+        {"key": "manieval.io/eval", "operator": "Exists", "effect": "NoSchedule"},
+        {
+            "key": "gpu",
+            "operator": "Equal",
+            "value": "true",
+            "effect": "NoExecute",
+            "tolerationSeconds": 60,
+        },
+    ]
+    assert pod["priorityClassName"] == "manieval-eval"
+    assert pod["imagePullSecrets"] == [{"name": "registry-pull"}, {"name": "mirror-pull"}]
+    assert pod["runtimeClassName"] == "gvisor"
+    for c in containers_of(pod):  # pod-level only: no container gets any of them
+        assert not {"nodeSelector", "tolerations", "imagePullSecrets"} & set(c)
+
+
+def test_without_node_pool_settings_the_pod_has_none_of_those_fields():
+    pod = pod_of(build_job(make_spec()))
+    absent = {"nodeSelector", "tolerations", "priorityClassName", "imagePullSecrets"}
+    assert not absent & set(pod)
+
+
+def test_the_worker_settings_become_the_pods_node_pool_fields(
+    settings: Settings, monkeypatch: pytest.MonkeyPatch
+):
+    monkeypatch.setenv(
+        "MANIEVAL_K8S_NODE_SELECTOR", "manieval.io/pool=eval, kubernetes.io/arch=amd64"
+    )
+    monkeypatch.setenv(
+        "MANIEVAL_K8S_TOLERATIONS",
+        '[{"key": "manieval.io/eval", "operator": "Exists", "effect": "NoSchedule"}]',
+    )
+    monkeypatch.setenv("MANIEVAL_K8S_PRIORITY_CLASS", "manieval-eval")
+    monkeypatch.setenv("MANIEVAL_K8S_IMAGE_PULL_SECRETS", "registry-pull,mirror-pull")
+    monkeypatch.setenv("MANIEVAL_EVALUATOR_IMAGE", "registry.example.org/evaluator:1")
+    wsettings = worker_settings(settings)
+    assert wsettings.k8s_node_selector == {
+        "manieval.io/pool": "eval",
+        "kubernetes.io/arch": "amd64",
+    }
+    assert wsettings.k8s_image_pull_secrets == ("registry-pull", "mirror-pull")
+    spec = make_spec()
+    handed = Assignment(
+        submission_id=7,
+        attempt=1,
+        plan=spec.evaluation.plan(),
+        suite_yaml=spec.evaluation.suite_yaml,
+        image=spec.policy_image,
+        shards=1,
+    )
+    pod = pod_of(build_job(job_spec(wsettings, handed)))
+    assert pod["nodeSelector"] == {"kubernetes.io/arch": "amd64", "manieval.io/pool": "eval"}
+    assert pod["tolerations"] == [
+        {"key": "manieval.io/eval", "operator": "Exists", "effect": "NoSchedule"}
+    ]
+    assert pod["priorityClassName"] == "manieval-eval"
+    assert pod["imagePullSecrets"] == [{"name": "registry-pull"}, {"name": "mirror-pull"}]
+    monkeypatch.setenv("MANIEVAL_K8S_NODE_SELECTOR", '{"pool": "eval"}')
+    assert worker_settings(settings).k8s_node_selector == {"pool": "eval"}
+    monkeypatch.setenv("MANIEVAL_K8S_NODE_SELECTOR", "pool")
+    with pytest.raises(ValueError, match="key=value"):
+        worker_settings(settings)
+
+
 def test_name_and_labels_identify_the_attempt_on_the_job_and_its_pods():
     manifest = build_job(make_spec(submission_id=42, attempt=3))
     labels = {
@@ -368,6 +551,15 @@ def test_the_same_spec_always_gives_the_same_manifest():
         ({"shards": 0}, "shards"),
         ({"shards": 65}, "shards"),
         ({"runtime_class_name": "g Visor"}, "runtime class"),
+        ({"node_selector": (("bad key!", "x"),)}, "node selector"),
+        ({"node_selector": (("pool", "not a value"),)}, "node selector"),
+        ({"tolerations": ((("key", "a"), ("operater", "Exists")),)}, "unknown"),
+        ({"tolerations": ((("key", "a"), ("operator", "Matches")),)}, "operator"),
+        ({"tolerations": ((("key", "a"), ("effect", "NoRun")),)}, "effect"),
+        ({"tolerations": ((("key", "a"), ("operator", "Exists"), ("value", "v")),)}, "Exists"),
+        ({"tolerations": ((("key", "a"), ("tolerationSeconds", 5)),)}, "NoExecute"),
+        ({"priority_class_name": "High Priority"}, "priority class"),
+        ({"image_pull_secrets": ("Pull_Secret",)}, "pull secret"),
         ({"evaluator_resources": Resources("-1", "1Gi", "1Gi")}, "quantity"),
         ({"evaluator_resources": Resources("2", "0", "1Gi")}, "quantity"),
         ({"evaluator_resources": Resources("2", "4 GB", "1Gi")}, "quantity"),
@@ -422,6 +614,38 @@ def specs(draw: st.DrawFn) -> JobSpec:
         runtime_class_name=draw(st.none() | st.sampled_from(["gvisor", "runsc", "kata-qemu"])),
         shards=draw(st.integers(1, 64)),
         scratch_size=draw(QUANTITIES["ephemeral"]),
+        node_selector=draw(
+            st.lists(
+                st.tuples(
+                    st.sampled_from(["pool", "manieval.io/pool", "kubernetes.io/arch"]),
+                    st.from_regex(r"\A[a-z0-9]([-a-z0-9]{0,10}[a-z0-9])?\Z"),
+                ),
+                max_size=3,
+                unique_by=lambda pair: pair[0],
+            ).map(tuple)
+        ),
+        tolerations=draw(
+            st.lists(
+                st.sampled_from(
+                    [
+                        (
+                            ("key", "manieval.io/eval"),
+                            ("operator", "Exists"),
+                            ("effect", "NoSchedule"),
+                        ),
+                        (("key", "gpu"), ("operator", "Equal"), ("value", "true")),
+                        (("operator", "Exists"),),
+                    ]
+                ),
+                max_size=3,
+            ).map(tuple)
+        ),
+        priority_class_name=draw(st.none() | st.sampled_from(["manieval-eval", "low"])),
+        image_pull_secrets=draw(
+            st.lists(
+                st.sampled_from(["pull", "registry-pull", "a.b"]), max_size=2, unique=True
+            ).map(tuple)
+        ),
     )
 
 
@@ -437,7 +661,8 @@ def test_any_valid_spec_gives_a_valid_restricted_deterministic_manifest(spec: Jo
     assert len(name) <= 63
     for c in containers_of(pod_of(manifest)):
         assert c["resources"]["requests"] == c["resources"]["limits"]
-    evaluator = container(manifest, "evaluator")
-    env = {e["name"]: e["value"] for e in evaluator["env"]}
-    assert EvaluationJob.model_validate_json(env[JOB_SPEC_ENV]) == spec.evaluation
+    secret = build_secret(spec, job_uid="5b0e8c55-0000-4000-8000-000000000000")
+    kubernetes_validate.validate(secret, "1.30", strict=True)
+    assert evaluation_read_by(manifest, secret) == spec.evaluation
+    assert spec.evaluation.canonical_json() not in json.dumps(manifest)
     assert container(manifest, "policy")["env"][0]["name"] == ENDPOINT_ENV

@@ -7,6 +7,8 @@ evaluator entry point with the env the Job manifest gives it, and the scripted p
 
 from __future__ import annotations
 
+import base64
+import json
 import os
 import shutil
 import subprocess
@@ -19,21 +21,22 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy import update
+from sqlalchemy.orm import Session, joinedload, sessionmaker
 
 from evaluator.evaluation import build_result, evaluate
-from evaluator.job import evaluation_job, write_document
+from evaluator.job import JOB_SPEC_FILE_ENV, evaluation_job, write_document
 from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import Abort, EvaluationResult
 from evaluator.runner import ShardOutcome
 from evaluator.sources import LocalDirectory
+from internal_api.schemas import State
 from server.challenges.service import ChallengeOptions, load_challenge, suite_of
 from server.kit.settings import Settings
-from server.models import State, Submission, utcnow
-from server.submissions.reports import report_state
+from server.models import Submission, utcnow
 from server.submissions.service import cancel
 from tests.evaluator.conftest import REPO, SCRIPTED, episode_records
-from tests.factories import SUITE, RecordingQueue, make_challenge, make_user, queue_submission
+from tests.factories import SUITE, make_challenge, make_user, queue_submission
 from tests.worker.k8s_double import (
     EVALUATOR_IMAGE,
     NAMESPACE,
@@ -41,12 +44,14 @@ from tests.worker.k8s_double import (
     make_spec,
     running_apiserver,
 )
+from tests.workers import worker_settings
 from worker.kubernetes.client import KubernetesExecutor
 from worker.kubernetes.manifest import build_job, job_name
-from worker.kubernetes.watch import resume_watch, run_as_job
-from worker.reconcile import reconcile
-from worker.run import job_resumer, run_next, runtime_cleaners
-from worker.scheduling import claim_next
+from worker.kubernetes.watch import job_spec, resume_watch, run_as_job
+from worker.reconcile import job_resumer, reconcile_pass, runtime_cleaners
+from worker.run import run_next
+from worker.server_api import ServerAPI
+from worker.settings import WorkerSettings
 
 STARTED = datetime(2026, 5, 1, tzinfo=UTC)
 
@@ -57,30 +62,39 @@ def apiserver() -> Iterator[ApiServerDouble]:
         yield double
 
 
+def k8s_worker(
+    settings: Settings, apiserver: ApiServerDouble, **overrides: object
+) -> WorkerSettings:
+    """A worker whose executor is the API-server double's cluster."""
+    values: dict[str, object] = {
+        "executor": "kubernetes",
+        "k8s_api_url": apiserver.host,
+        "k8s_namespace": NAMESPACE,
+        "evaluator_image": EVALUATOR_IMAGE,
+        "k8s_poll_interval": 0.05,
+    }
+    return worker_settings(settings, **(values | overrides))
+
+
 @pytest.fixture
-def k8s_settings(settings: Settings, apiserver: ApiServerDouble) -> Settings:
-    return settings.model_copy(
-        update={
-            "executor": "kubernetes",
-            "k8s_api_url": apiserver.host,
-            "k8s_namespace": NAMESPACE,
-            "evaluator_image": EVALUATOR_IMAGE,
-            "k8s_poll_interval": 0.05,
-        }
-    )
+def wsettings(settings: Settings, apiserver: ApiServerDouble) -> WorkerSettings:
+    """Overrides the worker fixture: the `api` fixture is this worker's client."""
+    return k8s_worker(settings, apiserver)
 
 
 class Run:
-    """`run_next` in a thread, as a Celery task would run it."""
+    """`run_next` in a thread, as a Celery task would run it; reads what the server recorded."""
 
-    def __init__(self, sessions: sessionmaker[Session], settings: Settings) -> None:
+    def __init__(
+        self, api: ServerAPI, wsettings: WorkerSettings, sessions: sessionmaker[Session]
+    ) -> None:
         self.sessions = sessions
         self.outcome: tuple[int, State | None] | None = None
-        self.thread = threading.Thread(target=self._run, args=(settings,), daemon=True)
+        self.thread = threading.Thread(target=self._run, args=(api, wsettings), daemon=True)
         self.thread.start()
 
-    def _run(self, settings: Settings) -> None:
-        self.outcome = run_next(self.sessions, settings)
+    def _run(self, api: ServerAPI, wsettings: WorkerSettings) -> None:
+        self.outcome = run_next(api, wsettings)
 
     def wait(self) -> State | None:
         self.thread.join(timeout=120)
@@ -89,10 +103,14 @@ class Run:
         return self.outcome[1]
 
     def submission(self, sid: int) -> Submission:
-        with self.sessions() as db:
-            submission = db.get(Submission, sid)
-            assert submission is not None
-            return submission
+        return submission_of(self.sessions, sid)
+
+
+def submission_of(sessions: sessionmaker[Session], sid: int) -> Submission:
+    with sessions() as db:
+        submission = db.get(Submission, sid)
+        assert submission is not None
+        return submission
 
 
 def until(check: Callable[[], object], what: str, timeout: float = 30.0) -> None:
@@ -112,17 +130,33 @@ def queued(committed_sessions: sessionmaker[Session]) -> Submission:
 
 
 def start(
-    sessions: sessionmaker[Session], settings: Settings, apiserver: ApiServerDouble, sid: int
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    sessions: sessionmaker[Session],
+    apiserver: ApiServerDouble,
+    sid: int,
 ) -> Run:
-    run = Run(sessions, settings)
+    run = Run(api, wsettings, sessions)
     until(lambda: (NAMESPACE, job_name(sid, 1)) in apiserver.jobs, "the Job")
+    until(lambda: (NAMESPACE, f"{job_name(sid, 1)}-evaluation") in apiserver.secrets, "its Secret")
     assert run.submission(sid).state == State.RUNNING
     return run
 
 
+def silent_for(sessions: sessionmaker[Session], sid: int, minutes: float) -> None:
+    """Let time pass for the server: the attempt's worker last reported `minutes` ago."""
+    long_ago = utcnow() - timedelta(minutes=minutes)
+    with sessions.begin() as db:
+        db.execute(
+            update(Submission)
+            .where(Submission.id == sid)
+            .values(heartbeat_at=long_ago, updated_at=long_ago)
+        )
+
+
 def plan_of(sessions: sessionmaker[Session], settings: Settings, sid: int) -> EvaluationPlan:
     with sessions() as db:
-        submission = db.get(Submission, sid)
+        submission = db.get(Submission, sid, options=[joinedload(Submission.challenge)])
         assert submission is not None
         suite = suite_of(submission.challenge)
     return build_plan(suite, "dev", secret=settings.secret("seed_secret").encode())
@@ -130,7 +164,7 @@ def plan_of(sessions: sessionmaker[Session], settings: Settings, sid: int) -> Ev
 
 def printed(document: EvaluationResult) -> str:
     out = tempfile.SpooledTemporaryFile(mode="w+")
-    write_document(document, out)  # type: ignore[arg-type]
+    write_document(document, out)
     out.seek(0)
     return str(out.read())
 
@@ -144,6 +178,19 @@ def run_pod(apiserver: ApiServerDouble, name: str) -> str:
         env = {k: v for k, v in os.environ.items() if not k.startswith("MANIEVAL_")}
         env |= {e["name"]: e["value"] for e in evaluator["env"]}
         env |= {"MANIEVAL_ENDPOINT_DIR": str(endpoint), "HOME": str(endpoint)}
+        # The Secret volume, as the kubelet mounts it into the evaluator container alone.
+        secret_file = Path(env[JOB_SPEC_FILE_ENV])
+        (mount,) = [
+            m for m in evaluator["volumeMounts"] if m["mountPath"] == str(secret_file.parent)
+        ]
+        (volume,) = [
+            v for v in manifest["spec"]["template"]["spec"]["volumes"] if v["name"] == mount["name"]
+        ]
+        secret = apiserver.secrets[(NAMESPACE, volume["secret"]["secretName"])]
+        mounted = endpoint / "secret"
+        mounted.mkdir()
+        (mounted / secret_file.name).write_bytes(base64.b64decode(secret["data"][secret_file.name]))
+        env[JOB_SPEC_FILE_ENV] = str(mounted / secret_file.name)
         policy = subprocess.Popen(
             [sys.executable, str(SCRIPTED / "policy.py")],
             cwd=SCRIPTED,
@@ -173,12 +220,14 @@ def run_pod(apiserver: ApiServerDouble, name: str) -> str:
 @pytest.mark.sim
 def test_a_submission_runs_as_a_job_and_scores_as_in_process(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
     sid, name = queued.id, job_name(queued.id, 1)
-    run = start(committed_sessions, k8s_settings, apiserver, sid)
+    run = start(api, wsettings, committed_sessions, apiserver, sid)
     apiserver.run(NAMESPACE, name)
     apiserver.write_log(NAMESPACE, name, "evaluator", "manieval: run 1 episode 0: success\n")
     until(lambda: (run.submission(sid).progress or {}).get("done") == 1, "progress from the log")
@@ -190,21 +239,22 @@ def test_a_submission_runs_as_a_job_and_scores_as_in_process(
     submission = run.submission(sid)
     assert submission.reason.startswith("score ")
     result = EvaluationResult.model_validate(submission.result)
-    local = evaluate(plan_of(committed_sessions, k8s_settings, sid), LocalDirectory(SCRIPTED))
+    local = evaluate(plan_of(committed_sessions, settings, sid), LocalDirectory(SCRIPTED))
     assert episode_records(result) == episode_records(local)
     assert (name, "Foreground") in apiserver.deletions  # collected, then deleted
 
 
 def test_the_job_is_built_from_the_plan_and_the_settings(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    settings: Settings,
+    api: ServerAPI,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
-    settings = k8s_settings.model_copy(
-        update={"k8s_runtime_class": "gvisor", "policy_cpus": 0.5, "policy_memory_mib": 768}
+    sized = k8s_worker(
+        settings, apiserver, k8s_runtime_class="gvisor", policy_cpus=0.5, policy_memory_mib=768
     )
-    run = start(committed_sessions, settings, apiserver, queued.id)
+    run = start(api, sized, committed_sessions, apiserver, queued.id)
     manifest = apiserver.jobs[(NAMESPACE, job_name(queued.id, 1))]
     pod = manifest["spec"]["template"]["spec"]
     (policy,) = pod["initContainers"]
@@ -215,28 +265,38 @@ def test_the_job_is_built_from_the_plan_and_the_settings(
         "ephemeral-storage": "-",
     }
     assert pod["runtimeClassName"] == "gvisor"
-    env = {e["name"]: e["value"] for e in pod["containers"][0]["env"]}
+    secret = apiserver.secrets[(NAMESPACE, f"{job_name(queued.id, 1)}-evaluation")]
+    document = base64.b64decode(secret["data"]["evaluation.json"]).decode()
+    assert secret["metadata"]["ownerReferences"][0]["uid"] == manifest["metadata"]["uid"]
     plan = plan_of(committed_sessions, settings, queued.id)
     with committed_sessions() as db:
-        submission = db.get(Submission, queued.id)
+        submission = db.get(Submission, queued.id, options=[joinedload(Submission.challenge)])
         assert submission is not None
         suite_yaml = submission.challenge.suite_yaml
-    assert env["MANIEVAL_JOB_SPEC"] == evaluation_job(plan, suite_yaml=suite_yaml).canonical_json()
+    assert document == evaluation_job(plan, suite_yaml=suite_yaml).canonical_json()
+    assert document not in json.dumps(manifest)  # the seeds are in no Job object...
+    apiserver.run(NAMESPACE, job_name(queued.id, 1))
+    for pod_object in apiserver.pods_of(NAMESPACE, job_name(queued.id, 1)):
+        assert document not in json.dumps(pod_object)  # ...nor in any Pod object
+        assert '"seeds"' not in json.dumps(pod_object)
     apiserver.fail(NAMESPACE, job_name(queued.id, 1))
     run.wait()
+    assert apiserver.secrets == {}  # deleted with its Job
 
 
 def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
     sid, name = queued.id, job_name(queued.id, 1)
-    run = start(committed_sessions, k8s_settings, apiserver, sid)
+    run = start(api, wsettings, committed_sessions, apiserver, sid)
     apiserver.run(NAMESPACE, name)
     apiserver.policy_killed(NAMESPACE, name)
-    plan = plan_of(committed_sessions, k8s_settings, sid)
+    plan = plan_of(committed_sessions, settings, sid)
     abort = Abort(kind="policy_crashed", reason="the policy disconnected")
     outcome = ShardOutcome(episodes=[], abort=(0, 0, abort))
     document = build_result(plan, "image", [outcome], started=STARTED)
@@ -281,7 +341,8 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
 )
 def test_every_way_a_job_ends_gives_a_final_state_with_a_reason(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
     arrange: Callable[[ApiServerDouble, str], object],
@@ -289,7 +350,7 @@ def test_every_way_a_job_ends_gives_a_final_state_with_a_reason(
     reason: str,
 ) -> None:
     name = job_name(queued.id, 1)
-    run = start(committed_sessions, k8s_settings, apiserver, queued.id)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     apiserver.run(NAMESPACE, name, ready=False)
     arrange(apiserver, name)
     assert run.wait() == state
@@ -298,15 +359,16 @@ def test_every_way_a_job_ends_gives_a_final_state_with_a_reason(
 
 def test_cancel_during_a_run_deletes_the_job_and_its_pods(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
     name = job_name(queued.id, 1)
-    run = start(committed_sessions, k8s_settings, apiserver, queued.id)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     apiserver.run(NAMESPACE, name)
     with committed_sessions.begin() as db:
-        submission = db.get(Submission, queued.id)
+        submission = db.get(Submission, queued.id, options=[joinedload(Submission.user)])
         assert submission is not None
         cancel(db, submission.user, submission)
     assert run.wait() == State.CANCELLED
@@ -316,12 +378,13 @@ def test_cancel_during_a_run_deletes_the_job_and_its_pods(
 
 def test_a_missing_evaluator_image_is_a_configuration_error(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    settings: Settings,
+    api: ServerAPI,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
-    settings = k8s_settings.model_copy(update={"evaluator_image": None})
-    assert Run(committed_sessions, settings).wait() == State.ERROR
+    unconfigured = k8s_worker(settings, apiserver, evaluator_image=None)
+    assert Run(api, unconfigured, committed_sessions).wait() == State.ERROR
     with committed_sessions() as db:
         submission = db.get(Submission, queued.id)
         assert submission is not None
@@ -331,13 +394,14 @@ def test_a_missing_evaluator_image_is_a_configuration_error(
 
 def test_the_reconciler_deletes_jobs_of_attempts_no_longer_active(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
     name = job_name(queued.id, 1)
-    run = start(committed_sessions, k8s_settings, apiserver, queued.id)
-    (clean,) = runtime_cleaners(k8s_settings)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
+    (clean,) = runtime_cleaners(wsettings)
     assert clean({(queued.id, 1)}) == []  # active: kept
     assert clean(set()) == [name]  # e.g. its worker died and the attempt was ended
     assert run.wait() == State.ERROR  # the worker watching it sees it gone, and says so
@@ -346,7 +410,8 @@ def test_the_reconciler_deletes_jobs_of_attempts_no_longer_active(
 
 def test_a_suite_that_asks_for_shards_gets_an_indexed_job(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     tmp_path: Path,
 ) -> None:
@@ -357,7 +422,7 @@ def test_a_suite_that_asks_for_shards_gets_an_indexed_job(
         challenge = load_challenge(db, sharded, options, seed_secret="s" * 32)
         sid = queue_submission(db, make_user(db, "bob"), challenge).id
         db.commit()
-    run = start(committed_sessions, k8s_settings, apiserver, sid)
+    run = start(api, wsettings, committed_sessions, apiserver, sid)
     spec = apiserver.jobs[(NAMESPACE, job_name(sid, 1))]["spec"]
     assert (spec["completionMode"], spec["completions"], spec["parallelism"]) == ("Indexed", 3, 3)
     apiserver.fail(NAMESPACE, job_name(sid, 1))
@@ -366,14 +431,16 @@ def test_a_suite_that_asks_for_shards_gets_an_indexed_job(
 
 def test_a_policy_log_that_is_not_utf8_does_not_cost_the_result(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
     sid, name = queued.id, job_name(queued.id, 1)
-    run = start(committed_sessions, k8s_settings, apiserver, sid)
+    run = start(api, wsettings, committed_sessions, apiserver, sid)
     apiserver.run(NAMESPACE, name)
-    plan = plan_of(committed_sessions, k8s_settings, sid)
+    plan = plan_of(committed_sessions, settings, sid)
     abort = Abort(kind="policy_error", reason="the policy raised: boom")
     document = build_result(plan, "image", [ShardOutcome(abort=(0, 0, abort))], started=STARTED)
     garbage = "bad bytes: \udcff\udcfe\n"  # b"\xff\xfe" on the wire
@@ -384,15 +451,16 @@ def test_a_policy_log_that_is_not_utf8_does_not_cost_the_result(
 
 def test_a_young_job_of_an_attempt_not_yet_seen_active_is_kept(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
     name = job_name(queued.id, 1)
-    run = start(committed_sessions, k8s_settings, apiserver, queued.id)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     now = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     apiserver.jobs[(NAMESPACE, name)]["metadata"]["creationTimestamp"] = now
-    (clean,) = runtime_cleaners(k8s_settings)
+    (clean,) = runtime_cleaners(wsettings)
     assert clean(set()) == []  # just created: the reconciler's snapshot may predate it
     apiserver.fail(NAMESPACE, name)
     assert run.wait() == State.ERROR
@@ -400,14 +468,15 @@ def test_a_young_job_of_an_attempt_not_yet_seen_active_is_kept(
 
 def test_a_job_of_the_same_name_that_is_not_ours_is_left_alone(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
     other = build_job(make_spec(submission_id=queued.id, attempt=1))
     other["metadata"]["labels"]["manieval.io/submission"] = "999"
     apiserver.put_job(other)
-    assert Run(committed_sessions, k8s_settings).wait() == State.ERROR
+    assert Run(api, wsettings, committed_sessions).wait() == State.ERROR
     with committed_sessions() as db:
         submission = db.get(Submission, queued.id)
         assert submission is not None
@@ -418,7 +487,8 @@ def test_a_job_of_the_same_name_that_is_not_ours_is_left_alone(
 
 def test_a_bug_while_watching_still_ends_the_attempt_and_removes_the_job(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
     monkeypatch: pytest.MonkeyPatch,
@@ -428,7 +498,7 @@ def test_a_bug_while_watching_still_ends_the_attempt_and_removes_the_job(
 
     monkeypatch.setattr(KubernetesExecutor, "pods", broken)
     name = job_name(queued.id, 1)
-    run = start(committed_sessions, k8s_settings, apiserver, queued.id)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     assert run.wait() == State.ERROR
     assert run.submission(queued.id).reason == "the worker failed: RuntimeError: unexpected"
     assert (name, "Foreground") in apiserver.deletions
@@ -436,89 +506,275 @@ def test_a_bug_while_watching_still_ends_the_attempt_and_removes_the_job(
 
 def test_a_lost_watcher_is_replaced_and_the_running_job_kept(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
-
     sid, name = queued.id, job_name(queued.id, 1)
-    with committed_sessions() as db:
-        assert claim_next(db, max_running_per_user=2) == (sid, 1)
-        submission = db.get(Submission, sid)
-        assert submission is not None
-        setup = {
-            "suite": suite_of(submission.challenge),
-            "suite_yaml": submission.challenge.suite_yaml,
-            "phase": "dev",
-            "pinned": submission.pinned_image,
-        }
+    handed = api.claim(wsettings.worker_name)
+    assert handed is not None
+    assert (handed.submission_id, handed.attempt) == (sid, 1)
     killed = threading.Event()  # the first watcher's worker dies once the Job exists
     first = threading.Thread(
-        target=run_as_job,
-        args=(committed_sessions, k8s_settings, sid, 1),
-        kwargs=setup | {"stop": killed},
+        target=run_as_job, args=(api, wsettings, handed), kwargs={"stop": killed}
     )
     first.start()
     until(lambda: (NAMESPACE, name) in apiserver.jobs, "the Job")
     killed.set()
     first.join(timeout=30)
+    assert not first.is_alive()
     apiserver.run(NAMESPACE, name)
+    silent_for(committed_sessions, sid, minutes=4)  # past the heartbeat timeout
+    assert [(r.submission_id, r.attempt) for r in api.silent()] == [(sid, 1)]
 
     sent: list[tuple[int, int]] = []
 
     def send(submission_id: int, attempt: int) -> None:
         sent.append((submission_id, attempt))
 
-    later = utcnow() + timedelta(minutes=4)  # past the heartbeat timeout
-    report = reconcile(
-        committed_sessions,
-        RecordingQueue(),
-        resume=job_resumer(k8s_settings, send),
-        now=later,
+    report = reconcile_pass(
+        api, cleaners=runtime_cleaners(wsettings), resume=job_resumer(wsettings, send)
     )
-    assert (report.resumed, report.lost, sent) == ([sid], [], [(sid, 1)])
-    assert Run(committed_sessions, k8s_settings).submission(sid).state == State.RUNNING
+    assert (report.resumed, report.server.lost, sent) == ([sid], [], [(sid, 1)])
+    assert report.removed == []  # its Job belongs to an active attempt: kept
+    assert (NAMESPACE, name) in apiserver.jobs
+    assert submission_of(committed_sessions, sid).state == State.RUNNING
+    assert api.silent() == []  # heartbeat given until the new watcher looks
 
     outcome: list[State | None] = []
-    second = threading.Thread(
-        target=lambda: outcome.append(resume_watch(committed_sessions, k8s_settings, sid, 1))
-    )
+    second = threading.Thread(target=lambda: outcome.append(resume_watch(api, wsettings, sid, 1)))
     second.start()
-    plan = plan_of(committed_sessions, k8s_settings, sid)
+    plan = plan_of(committed_sessions, settings, sid)
     document = build_result(plan, "image", [ShardOutcome()], started=STARTED)
     apiserver.succeed(NAMESPACE, name, [printed(document)])
     second.join(timeout=60)
     assert outcome == [State.SUCCEEDED]
+    assert submission_of(committed_sessions, sid).state == State.SUCCEEDED
     assert [d for d in apiserver.deletions if d[0] == name] == [(name, "Foreground")]
 
 
 def test_a_silent_attempt_whose_job_is_gone_is_lost_as_before(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
-    apiserver: ApiServerDouble,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     queued: Submission,
 ) -> None:
-
-    with committed_sessions.begin() as db:
-        assert report_state(db, queued.id, 1, State.LAUNCHING, "go")
-        assert report_state(db, queued.id, 1, State.RUNNING, "go")
+    handed = api.claim(wsettings.worker_name)  # claimed and running, but no Job was made
+    assert handed is not None
+    running = api.running(queued.id, 1, reason="go", deadline_s=3600)
+    assert running is not None
+    assert running.applied
+    silent_for(committed_sessions, queued.id, minutes=4)
     sent: list[tuple[int, int]] = []
-    later = utcnow() + timedelta(minutes=4)
-    resume = job_resumer(k8s_settings, lambda sid, attempt: sent.append((sid, attempt)))
-    report = reconcile(committed_sessions, RecordingQueue(), resume=resume, now=later)
-    assert (report.resumed, report.lost, sent) == ([], [queued.id], [])
+    resume = job_resumer(wsettings, lambda sid, attempt: sent.append((sid, attempt)))
+    report = reconcile_pass(api, cleaners=runtime_cleaners(wsettings), resume=resume)
+    assert (report.resumed, report.server.lost, sent) == ([], [queued.id], [])
+    assert report.server.requeued == [queued.id]  # our fault, the first time: it runs again
+    submission = submission_of(committed_sessions, queued.id)
+    assert (submission.state, submission.attempt) == (State.QUEUED, 2)
 
 
 def test_an_eviction_that_makes_the_job_run_out_of_time_is_not_the_policys_fault(
     committed_sessions: sessionmaker[Session],
-    k8s_settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
     name = job_name(queued.id, 1)
-    run = start(committed_sessions, k8s_settings, apiserver, queued.id)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     apiserver.run(NAMESPACE, name)
     apiserver.disrupt(NAMESPACE, name)  # the replacement pod starts late...
     apiserver.exceed_deadline(NAMESPACE, name)  # ...and the Job's clock ran on
     assert run.wait() == State.ERROR  # ours: it does not count against the quota
     assert "evicted" in run.submission(queued.id).reason
+
+
+def pod_looks(apiserver: ApiServerDouble) -> int:
+    """How many times the pods have been listed (each of the watcher's looks lists them)."""
+    with apiserver.lock:
+        return sum(1 for r in apiserver.requests if r.method == "GET" and r.path.endswith("/pods"))
+
+
+def looked_twice(apiserver: ApiServerDouble) -> None:
+    """Wait until the watcher has seen what the double holds now: a look that began after this
+    call, so one whose answer was read (the watcher looks in sequence)."""
+    before = pod_looks(apiserver)
+    until(lambda: pod_looks(apiserver) >= before + 2, "the watcher's looks")
+
+
+def test_a_job_the_quota_refuses_ends_error_at_once_with_the_clusters_reason(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    apiserver.job_quota = 0
+    assert Run(api, wsettings, committed_sessions).wait() == State.ERROR
+    reason = submission_of(committed_sessions, queued.id).reason
+    assert "cannot create the evaluation Job: 403" in reason
+    assert "exceeded quota: eval-quota" in reason
+    assert apiserver.jobs == {}
+
+
+@pytest.mark.parametrize(
+    ("pod_quota", "controller", "expected"),
+    [
+        (
+            None,
+            lambda api, ns, name: api.unschedulable(ns, name),
+            "its pod could not be scheduled in 1 s: 0/3 nodes are available: "
+            "3 Insufficient nvidia.com/gpu.",
+        ),
+        (
+            0,
+            lambda api, ns, name: api.run(ns, name),
+            "no pod was created in 1 s: FailedCreate: Error creating: pods",
+        ),
+        (None, lambda api, ns, name: None, "no pod was created in 1 s"),
+        (None, lambda api, ns, name: api.run(ns, name, ready=False), "its pod stayed pending"),
+    ],
+    ids=["unschedulable", "pods-refused-by-quota", "no-pod-at-all", "pending"],
+)
+def test_pods_that_never_run_end_error_after_the_pending_timeout_not_the_deadline(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+    pod_quota: int | None,
+    controller: Callable[[ApiServerDouble, str, str], object],
+    expected: str,
+) -> None:
+    apiserver.pod_quota = pod_quota
+    apiserver.on_create = lambda ns, name: controller(apiserver, ns, name)
+    patient = k8s_worker(settings, apiserver, k8s_pending_timeout_s=0.5)
+    assert Run(api, patient, committed_sessions).wait() == State.ERROR
+    reason = submission_of(committed_sessions, queued.id).reason
+    prefix = "the cluster stopped the evaluation: "
+    assert reason.startswith(prefix + expected.split(" 1 s")[0]), reason
+    assert expected.split(" 1 s")[-1] in reason
+    if pod_quota is not None:
+        assert "exceeded quota: eval-quota" in reason
+    assert apiserver.jobs == {}  # deleted: the deadline (900 s) was never waited for
+
+
+def test_a_pod_pending_within_the_timeout_is_waited_for(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    name = job_name(queued.id, 1)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
+    apiserver.unschedulable(NAMESPACE, name)  # the autoscaler adds a node in time...
+    looked_twice(apiserver)
+    assert run.submission(queued.id).state == State.RUNNING
+    apiserver.exceed_deadline(NAMESPACE, name)  # ...or not: then the deadline decides
+    assert run.wait() == State.TIMED_OUT
+
+
+@pytest.mark.parametrize(
+    ("disrupt", "expected"),
+    [
+        (lambda api, name: api.evict(NAMESPACE, name), "was deleted (evicted, preempted"),
+        (
+            lambda api, name: api.evict(NAMESPACE, name, replace=False),
+            "was deleted (evicted, preempted",
+        ),
+        (lambda api, name: api.disrupt(NAMESPACE, name), "(EvictionByEvictionAPI"),
+        (lambda api, name: api.lose_node(NAMESPACE, name), "(DeletionByTaintManager"),
+    ],
+    ids=["evicted-and-deleted", "preempted-not-replaced", "evicted-kept-listed", "node-lost"],
+)
+def test_a_pod_the_cluster_evicts_or_loses_ends_error_at_once_with_its_reason(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+    disrupt: Callable[[ApiServerDouble, str], object],
+    expected: str,
+) -> None:
+    name = job_name(queued.id, 1)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
+    apiserver.run(NAMESPACE, name)
+    looked_twice(apiserver)
+    disrupt(apiserver, name)
+    assert run.wait() == State.ERROR  # ours: no quota used, and long before the deadline
+    reason = run.submission(queued.id).reason
+    assert reason.startswith("the cluster stopped the evaluation: pod eval-"), reason
+    assert expected in reason
+    assert apiserver.jobs == {}
+
+
+def test_one_shard_left_unschedulable_ends_the_attempt_after_the_pending_timeout(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+    tmp_path: Path,
+) -> None:
+    sharded = tmp_path / "sharded.yaml"
+    sharded.write_text(SUITE.read_text().replace("name: server-tiny", "name: sharded\nshards: 3"))
+    with committed_sessions() as db:
+        options = ChallengeOptions(quota_concurrent=10, quota_per_day=10)
+        challenge = load_challenge(db, sharded, options, seed_secret="s" * 32)
+        sid = queue_submission(db, make_user(db, "bob"), challenge).id
+        db.commit()
+
+    def two_of_three_scheduled(namespace: str, name: str) -> None:
+        pods = apiserver.run(namespace, name)  # all three start...
+        last = apiserver.pods[(namespace, pods[2])]
+        last["status"] = {  # ...but the third: no node has room for it
+            "phase": "Pending",
+            "conditions": [
+                {
+                    "type": "PodScheduled",
+                    "status": "False",
+                    "reason": "Unschedulable",
+                    "message": "0/3 nodes are available: 3 Insufficient cpu.",
+                }
+            ],
+        }
+
+    apiserver.on_create = two_of_three_scheduled
+    patient = k8s_worker(settings, apiserver, k8s_pending_timeout_s=0.5)
+    assert Run(api, patient, committed_sessions).wait() == State.ERROR
+    reason = submission_of(committed_sessions, sid).reason
+    assert reason.startswith("the cluster stopped the evaluation: its pod could not be scheduled")
+    assert reason.endswith("3 Insufficient cpu.")
+
+
+def test_a_resumed_watch_gives_the_job_its_secret_if_its_creator_died_before(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    sid, name = queued.id, job_name(queued.id, 1)
+    handed = api.claim(wsettings.worker_name)
+    assert handed is not None
+    assert api.running(sid, 1, reason="evaluating", deadline_s=900) is not None
+    apiserver.put_job(build_job(job_spec(wsettings, handed)))  # the creator died right after
+    assert apiserver.secrets == {}
+    outcome: list[State | None] = []
+    watcher = threading.Thread(target=lambda: outcome.append(resume_watch(api, wsettings, sid, 1)))
+    watcher.start()
+    until(lambda: (NAMESPACE, f"{name}-evaluation") in apiserver.secrets, "the Secret")
+    secret = apiserver.secrets[(NAMESPACE, f"{name}-evaluation")]
+    assert (
+        secret["metadata"]["ownerReferences"][0]["uid"]
+        == (apiserver.jobs[(NAMESPACE, name)]["metadata"]["uid"])
+    )
+    plan = plan_of(committed_sessions, settings, sid)
+    document = build_result(plan, "image", [ShardOutcome()], started=STARTED)
+    apiserver.succeed(NAMESPACE, name, [printed(document)])
+    watcher.join(timeout=60)
+    assert outcome == [State.SUCCEEDED]

@@ -1,141 +1,164 @@
-"""The reconciler ends what is overdue or lost, re-queues our failures once, wakes the queue
-and removes leftovers."""
+"""The worker's side of a reconciling pass, through the internal API: silent attempts whose
+evaluation still runs elsewhere are handed to a new watcher (and kept alive), then the server
+decides, then leftovers of attempts that are no longer active are removed.
+
+The server's own decisions (time-outs, lost attempts, wake-ups) are tested in
+tests/server/test_reconcile.py; here the server is real but time does not pass, so a silent
+attempt is made by ageing its heartbeat in the database.
+"""
 
 from __future__ import annotations
 
-from datetime import timedelta
+from datetime import datetime, timedelta
 
-from sqlalchemy import select
+import pytest
+from sqlalchemy import update
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.models import State, Submission, Transition, utcnow
-from server.submissions.reports import report_state
+from internal_api.schemas import AttemptRef, State
+from server.models import Submission, utcnow
 from tests.factories import RecordingQueue, make_challenge, make_user, queue_submission
-from worker.reconcile import reconcile
+from worker.reconcile import reconcile_pass
+from worker.server_api import ServerAPI
+from worker.settings import WorkerSettings
+
+Active = set[tuple[int, int]]
 
 
-def _submission(db: Session, name: str = "alice") -> Submission:
-    challenge = make_challenge(db, quota_concurrent=100, quota_per_day=100)
-    s = queue_submission(db, make_user(db, name), challenge)
-    db.commit()
-    return s
+@pytest.fixture
+def queued(committed_sessions: sessionmaker[Session]) -> list[int]:
+    """Two queued submissions, alice's then bob's."""
+    with committed_sessions() as db:
+        challenge = make_challenge(db, quota_concurrent=100, quota_per_day=100)
+        ids = [queue_submission(db, make_user(db, name), challenge).id for name in ("alice", "bob")]
+        db.commit()
+    return ids
 
 
-def _running(db: Session, s: Submission, **values: object) -> None:
-    assert report_state(db, s.id, s.attempt, State.LAUNCHING, "go")
-    assert report_state(db, s.id, s.attempt, State.RUNNING, "go")
-    for key, value in values.items():
-        setattr(s, key, value)
-    db.commit()
+def running(api: ServerAPI, wsettings: WorkerSettings, sid: int) -> None:
+    """Claim `sid` (the fairest queued) and report it running, as a worker does."""
+    handed = api.claim(wsettings.worker_name)
+    assert handed is not None
+    assert (handed.submission_id, handed.attempt) == (sid, 1)
+    out = api.running(sid, 1, reason="evaluating", deadline_s=3600)
+    assert out is not None
+    assert out.applied
+    assert api.progress(sid, 1, {"done": 1, "total": 4}).applied
 
 
-def test_overdue_runs_time_out(sessions: sessionmaker[Session], db: Session) -> None:
-    s = _submission(db)
-    _running(db, s, deadline_at=utcnow() + timedelta(minutes=5))
-    assert reconcile(sessions, RecordingQueue()).timed_out == []
-    report = reconcile(sessions, RecordingQueue(), now=utcnow() + timedelta(minutes=6))
-    assert report.timed_out == [s.id]
-    db.refresh(s)
-    assert s.state == State.TIMED_OUT
-    assert "time budget" in s.reason
+def age(sessions: sessionmaker[Session], sid: int, minutes: float = 4) -> datetime:
+    """Time passes for the server: the attempt's worker last reported `minutes` ago."""
+    long_ago = utcnow() - timedelta(minutes=minutes)
+    with sessions.begin() as db:
+        db.execute(
+            update(Submission)
+            .where(Submission.id == sid)
+            .values(heartbeat_at=long_ago, updated_at=long_ago)
+        )
+    return long_ago
 
 
-def test_a_lost_worker_is_our_error_and_runs_again_once(
-    sessions: sessionmaker[Session], db: Session
+def submission(sessions: sessionmaker[Session], sid: int) -> Submission:
+    with sessions() as db:
+        s = db.get(Submission, sid)
+        assert s is not None
+        return s
+
+
+def test_cleaners_get_the_active_attempts_and_report_what_they_removed(
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    queued: list[int],
+    work: RecordingQueue,
 ) -> None:
-    s = _submission(db)
-    _running(db, s)
-    later = utcnow() + timedelta(minutes=4)
-    work = RecordingQueue()
-    report = reconcile(sessions, work, now=later)
-    assert report.lost == [s.id]
-    assert report.requeued == [s.id]
-    db.refresh(s)
-    assert (s.state, s.attempt) == (State.QUEUED, 2)
-    _running(db, s)
-    report = reconcile(sessions, work, now=later + timedelta(minutes=4))
-    assert report.lost == [s.id]
-    assert report.requeued == []
-    db.refresh(s)
-    assert (s.state, s.attempt) == (State.ERROR, 2)
-    assert "again" in s.reason
-    history = db.scalars(
-        select(Transition.to_state).where(Transition.submission_id == s.id).order_by(Transition.id)
-    ).all()
-    assert history == [
-        State.QUEUED,
-        State.LAUNCHING,
-        State.RUNNING,
-        State.ERROR,
-        State.QUEUED,
-        State.LAUNCHING,
-        State.RUNNING,
-        State.ERROR,
-    ]
+    alice, bob = queued
+    running(api, wsettings, alice)
+    seen: list[Active] = []
 
-
-def test_heartbeats_keep_a_run_alive(sessions: sessionmaker[Session], db: Session) -> None:
-    s = _submission(db)
-    _running(db, s, heartbeat_at=utcnow() + timedelta(minutes=3))
-    assert reconcile(sessions, RecordingQueue(), now=utcnow() + timedelta(minutes=4)).lost == []
-
-
-def test_a_launch_that_never_starts_is_lost(sessions: sessionmaker[Session], db: Session) -> None:
-    s = _submission(db)
-    assert report_state(db, s.id, 1, State.LAUNCHING, "pulling")
-    db.commit()
-    assert reconcile(sessions, RecordingQueue(), now=utcnow() + timedelta(minutes=5)).lost == []
-    report = reconcile(sessions, RecordingQueue(), now=utcnow() + timedelta(minutes=16))
-    assert report.lost == [s.id]
-
-
-def test_waiting_submissions_get_wake_ups_and_leftovers_are_cleaned(
-    sessions: sessionmaker[Session], db: Session
-) -> None:
-    s = _submission(db)
-    seen: list[set[tuple[int, int]]] = []
-
-    def cleaner(active: set[tuple[int, int]]) -> list[str]:
+    def cleaner(active: Active) -> list[str]:
         seen.append(active)
         return ["eval-99-1"]
 
-    work = RecordingQueue()
-    report = reconcile(sessions, work, cleaners=[cleaner], now=utcnow() + timedelta(minutes=3))
-    assert report.woken == 1
-    assert work.sent == [(s.id, 1), (0, 0)]  # the unsent outbox row, then a wake-up
-    assert seen == [{(s.id, 1)}]
-    assert report.removed == ["eval-99-1"]
+    def broken(_active: Active) -> list[str]:
+        raise ConnectionError("the container engine does not answer")
+
+    report = reconcile_pass(api, cleaners=[broken, cleaner])
+    assert seen == [{(alice, 1), (bob, 1)}]  # running and queued: both still active
+    assert report.removed == ["eval-99-1"]  # a failing cleaner does not stop the others
+    assert report.resumed == []
+    assert sorted(report.server.active, key=lambda r: r.submission_id) == [
+        AttemptRef(submission_id=alice, attempt=1),
+        AttemptRef(submission_id=bob, attempt=1),
+    ]
+    assert sorted(work.sent) == [(alice, 1), (bob, 1)]  # the server's pass sent its outbox
+
+
+def test_a_resumable_silent_attempt_gets_a_heartbeat_and_is_not_lost(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    queued: list[int],
+) -> None:
+    sid = queued[0]
+    running(api, wsettings, sid)
+    long_ago = age(committed_sessions, sid)
+    sent: list[tuple[int, int]] = []
+
+    def resume(submission_id: int, attempt: int) -> bool:
+        sent.append((submission_id, attempt))
+        return True
+
+    report = reconcile_pass(api, resume=resume)
+    assert (report.resumed, report.server.lost, sent) == ([sid], [], [(sid, 1)])
+    s = submission(committed_sessions, sid)
+    assert s.state == State.RUNNING
+    assert s.heartbeat_at is not None
+    assert s.heartbeat_at > long_ago
+    assert s.progress == {"done": 1, "total": 4}  # a heartbeat only: the progress stays
+    # Until the new watcher reports, the hand-over's heartbeat keeps it from being silent.
+    assert reconcile_pass(api, resume=resume).resumed == []
+    assert sent == [(sid, 1)]
+
+
+def test_a_silent_attempt_that_no_longer_runs_anywhere_is_lost(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    queued: list[int],
+) -> None:
+    sid = queued[0]
+    running(api, wsettings, sid)
+    age(committed_sessions, sid)
+    report = reconcile_pass(api, resume=lambda _sid, _attempt: False)
+    assert (report.resumed, report.server.lost, report.server.requeued) == ([], [sid], [sid])
+    s = submission(committed_sessions, sid)
+    assert (s.state, s.attempt) == (State.QUEUED, 2)
 
 
 def test_a_resumer_that_cannot_tell_leaves_the_attempt_for_the_next_pass(
-    sessions: sessionmaker[Session], db: Session
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    queued: list[int],
 ) -> None:
-    s = _submission(db)
-    _running(db, s)
+    sid = queued[0]
+    running(api, wsettings, sid)
+    age(committed_sessions, sid)
+    asked: list[int] = []
 
-    def cannot_tell(_sid: int, _attempt: int) -> bool:
+    def cannot_tell(submission_id: int, _attempt: int) -> bool:
+        asked.append(submission_id)
         raise ConnectionError("the API server does not answer")
 
-    later = utcnow() + timedelta(minutes=4)
-    report = reconcile(sessions, RecordingQueue(), resume=cannot_tell, now=later)
-    assert (report.lost, report.resumed) == ([], [])
-    db.refresh(s)
-    assert s.state == State.RUNNING
+    report = reconcile_pass(api, resume=cannot_tell)
+    assert (report.resumed, report.server.lost) == ([], [])
+    assert submission(committed_sessions, sid).state == State.RUNNING
 
+    def gone(submission_id: int, _attempt: int) -> bool:
+        asked.append(submission_id)
+        return False
 
-def test_a_resumed_attempt_is_not_silent_until_its_new_watcher_reports(
-    sessions: sessionmaker[Session], db: Session
-) -> None:
-    s = _submission(db)
-    _running(db, s)
-    sent: list[int] = []
-
-    def resume(sid: int, _attempt: int) -> bool:
-        sent.append(sid)
-        return True
-
-    later = utcnow() + timedelta(minutes=4)
-    assert reconcile(sessions, RecordingQueue(), resume=resume, now=later).resumed == [s.id]
-    soon = later + timedelta(minutes=1)  # within the heartbeat timeout of the hand-over
-    assert reconcile(sessions, RecordingQueue(), resume=resume, now=soon).resumed == []
-    assert sent == [s.id]
+    age(committed_sessions, sid)  # still silent at a later pass: asked again, and now it can tell
+    report = reconcile_pass(api, resume=gone)
+    assert asked == [sid, sid]
+    assert report.server.lost == [sid]

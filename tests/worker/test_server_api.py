@@ -138,3 +138,18 @@ def test_an_unreadable_spool_file_is_set_aside(tmp_path: Path) -> None:
     (tmp_path / "spool" / "2-1.json").write_text("{not json")
     assert [k.submission_id for k in spool] == [1]
     assert (tmp_path / "spool" / "2-1.bad").exists()
+
+
+def test_a_final_report_with_its_result_document_is_spooled_and_sent_whole(
+    tmp_path: Path,
+) -> None:
+    from tests.factories import result_doc
+
+    report = FinalReport(state=State.SUCCEEDED, reason="score 0.500", result=result_doc([True]))
+    seen: list[httpx.Request] = []
+    api = client(tmp_path, [refused()], seen, report_patience_s=0.3)
+    assert api.final(5, 1, report) is None
+    assert [k.report for k in api.spool] == [report]  # datetimes and all, through JSON
+    restarted = client(tmp_path, [final_ok()], seen)
+    assert restarted.flush_spool() == 1
+    assert json.loads(seen[-1].content)["result"]["score"] == report.result.score  # type: ignore[union-attr]

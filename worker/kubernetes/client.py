@@ -39,6 +39,7 @@ from worker.kubernetes.manifest import (
     SUBMISSION_LABEL,
     JobSpec,
     build_job,
+    build_secret,
     job_labels,
     job_name,
 )
@@ -76,8 +77,23 @@ class PodView:
     """How the policy container last ended, when it did not exit cleanly (OOMKilled, a code)."""
     evaluating: bool = False
     """Whether an evaluator container has started in some pod."""
-    disrupted: bool = False
-    """Whether the cluster evicted or preempted a pod of the Job (DisruptionTarget)."""
+    started: int = 0
+    """In how many pods the evaluator container has started (an Indexed Job has one per
+    shard: one shard left unscheduled holds the whole result)."""
+    disrupted: str | None = None
+    """How the cluster evicted, preempted or lost a pod of the Job (a DisruptionTarget
+    condition, or a pod failed with a reason of the kubelet's such as Evicted or NodeLost)."""
+    unschedulable: str | None = None
+    """Why the scheduler cannot place a pending pod (PodScheduled=False, Unschedulable)."""
+    alive: frozenset[str] = frozenset()
+    """The pods not yet ended (neither Succeeded nor Failed), by name."""
+    names: frozenset[str] = frozenset()
+    """Every pod of the Job listed, ended or not."""
+
+    @property
+    def count(self) -> int:
+        """How many pods the Job has at all."""
+        return len(self.names)
 
 
 @dataclass(frozen=True)
@@ -133,6 +149,7 @@ class Backoff:
 
 T = TypeVar("T")
 ORPHAN_GRACE_S = 120.0
+LIST_RESTARTS = 3
 MAX_LOG_BYTES = 16 * 1024 * 1024  # an evaluator's log holds the result document: keep it whole
 
 
@@ -165,11 +182,13 @@ class KubernetesExecutor:
             )
         body = V1Job.from_dict(build_job(spec))
         try:
-            self._call(self._batch.create_namespaced_job, self.namespace, body)
-            return StartedJob(spec.name, adopted=False)
+            created = self._call(self._batch.create_namespaced_job, self.namespace, body)
         except KubernetesError as exc:
             if exc.status != 409:
                 raise
+        else:
+            self._give_evaluation(spec, created)
+            return StartedJob(spec.name, adopted=False)
         existing = self._call(self._batch.read_namespaced_job, spec.name, self.namespace)
         meta = existing.metadata
         labels = (meta.labels if meta else None) or {}
@@ -178,7 +197,27 @@ class KubernetesExecutor:
             raise JobConflict(f"Job {spec.name} exists with other labels: {labels}", status=409)
         if meta is not None and meta.deletion_timestamp is not None:
             raise JobConflict(f"Job {spec.name} is being deleted; try again later", status=409)
+        self._give_evaluation(spec, existing)  # the one who created it may have died first
         return StartedJob(spec.name, adopted=True)
+
+    def give_evaluation(self, spec: JobSpec) -> None:
+        """Make sure the attempt's existing Job has its Secret (a watch resumed after its
+        creator died between the two)."""
+        job = self._call(self._batch.read_namespaced_job, spec.name, self.namespace)
+        self._give_evaluation(spec, job)
+
+    def _give_evaluation(self, spec: JobSpec, job: V1Job) -> None:
+        """Create the Job's Secret with the evaluation, owned by the Job (deleted with it); the
+        pod waits for it. One that exists already (409) is this attempt's: same name, owner."""
+        uid = job.metadata.uid if job.metadata is not None else None
+        if not uid:
+            raise KubernetesError(f"the API server gave Job {spec.name} no uid")
+        secret = build_secret(spec, job_uid=uid)  # a dict is sent as it is
+        try:
+            self._call(self._core.create_namespaced_secret, self.namespace, secret)
+        except KubernetesError as exc:
+            if exc.status != 409:
+                raise
 
     def status(self, submission_id: int, attempt: int) -> JobStatus:
         """Where the attempt's Job is; `missing` when there is none."""
@@ -217,21 +256,40 @@ class KubernetesExecutor:
         """Look into the attempt's pods: a container that cannot start, how the policy ended."""
         selector = ",".join(f"{k}={v}" for k, v in job_labels(submission_id, attempt).items())
         pods = self._call(self._core.list_namespaced_pod, self.namespace, label_selector=selector)
-        view = PodView()
+        view = PodView(names=frozenset((p.metadata.name or "") for p in pods.items if p.metadata))
         for pod in pods.items:
             status = pod.status
             if status is None:
                 continue
-            if any(
-                c.type == "DisruptionTarget" and c.status == "True" for c in status.conditions or []
-            ):
-                view = replace(view, disrupted=True)
+            name = pod.metadata.name if pod.metadata and pod.metadata.name else ""
+            if status.phase not in ("Succeeded", "Failed"):
+                view = replace(view, alive=view.alive | {name})
+            if view.disrupted is None:
+                view = replace(view, disrupted=_disruption(name, status))
+            if view.unschedulable is None:
+                view = replace(view, unschedulable=_unschedulable(status))
+            before = view.evaluating
+            view = replace(view, evaluating=False)
             for container in [
                 *(status.init_container_statuses or []),
                 *(status.container_statuses or []),
             ]:
                 view = _look(view, container)
+            started = view.evaluating
+            view = replace(view, evaluating=before or started, started=view.started + started)
         return view
+
+    def events(self, submission_id: int, attempt: int) -> list[str]:
+        """The cluster's warnings about the attempt's Job (a pod the quota refused, say),
+        oldest first, as `Reason: message`."""
+        name = job_name(submission_id, attempt)
+        selector = f"involvedObject.kind=Job,involvedObject.name={name}"
+        listed = self._call(
+            self._core.list_namespaced_event, self.namespace, field_selector=selector
+        )
+        warnings = [e for e in listed.items if e.type == "Warning"]
+        warnings.sort(key=_event_time)
+        return [f"{e.reason or 'Warning'}: {e.message or ''}".rstrip(": ") for e in warnings]
 
     def cancel(self, submission_id: int, attempt: int) -> bool:
         """Delete the Job, its pods first (foreground); False when it was already gone."""
@@ -258,14 +316,22 @@ class KubernetesExecutor:
         selector = f"{APP_LABEL}={APP},{ROLE_LABEL}={ROLE}"
         refs: list[JobRef] = []
         token: str | None = None
+        restarts = 0
         while True:
-            page = self._call(
-                self._batch.list_namespaced_job,
-                self.namespace,
-                label_selector=selector,
-                limit=200,
-                _continue=token,
-            )
+            try:
+                page = self._call(
+                    self._batch.list_namespaced_job,
+                    self.namespace,
+                    label_selector=selector,
+                    limit=200,
+                    _continue=token,
+                )
+            except KubernetesError as exc:
+                # 410 Gone: the continue token expired (compacted); list again from the start.
+                if exc.status != 410 or token is None or restarts >= LIST_RESTARTS:
+                    raise
+                refs, token, restarts = [], None, restarts + 1
+                continue
             refs.extend(ref for job in page.items if (ref := _job_ref(job)) is not None)
             token = page.metadata.var_continue if page.metadata else None
             if not token:
@@ -326,9 +392,32 @@ class KubernetesExecutor:
                     continue
                 raise KubernetesError(_message(exc), status=status) from None
             except urllib3.exceptions.HTTPError as exc:
+                # The client's own retries are off (`no_client_retries`): this backoff is the
+                # only one, for an unreachable server as for 429 and 5xx.
+                if retry + 1 < self.backoff.attempts:
+                    self.sleep(self.backoff.delay(retry, self.jitter(), None))
+                    retry += 1
+                    continue
                 raise KubernetesError(f"the API server cannot be reached: {exc}") from None
             except ValueError as exc:  # an answer the client cannot read (bad JSON, a model)
                 raise KubernetesError(f"unreadable answer from the API server: {exc}") from None
+
+
+def no_client_retries(configuration: Any) -> Any:
+    """Turn off urllib3's own retries in a client Configuration (it would retry connection
+    errors, and 413/429/503 answers with Retry-After, outside `Backoff`); returns it."""
+    configuration.retries = urllib3.util.Retry(
+        total=0,
+        connect=0,
+        read=0,
+        redirect=0,
+        status=0,
+        other=0,
+        respect_retry_after_header=False,
+        raise_on_status=False,
+        raise_on_redirect=False,
+    )
+    return configuration
 
 
 def _retryable(status: int | None) -> bool:
@@ -418,6 +507,44 @@ def _look(view: PodView, container: Any) -> PodView:
                 view = replace(view, policy_ended=_ending(ended))
                 break
     return view
+
+
+DISRUPTING_REASONS = frozenset(
+    {"Evicted", "NodeLost", "Preempting", "Shutdown", "Terminated", "NodeShutdown"}
+)
+"""Reasons a pod fails for that are the node's or the cluster's doing, never the evaluation's."""
+
+
+def _disruption(name: str, status: Any) -> str | None:
+    for condition in status.conditions or []:
+        if condition.type == "DisruptionTarget" and condition.status == "True":
+            why = condition.reason or "DisruptionTarget"
+            detail = f": {condition.message}" if condition.message else ""
+            return f"pod {name} was disrupted by the cluster ({why}{detail})"
+    if status.phase == "Failed" and status.reason in DISRUPTING_REASONS:
+        detail = f": {status.message}" if status.message else ""
+        return f"pod {name} failed on its node ({status.reason}{detail})"
+    return None
+
+
+def _unschedulable(status: Any) -> str | None:
+    if status.phase != "Pending":
+        return None
+    for condition in status.conditions or []:
+        if (
+            condition.type == "PodScheduled"
+            and condition.status == "False"
+            and condition.reason == "Unschedulable"
+        ):
+            return condition.message or "Unschedulable"
+    return None
+
+
+def _event_time(event: Any) -> float:
+    for value in (event.last_timestamp, event.event_time, event.first_timestamp):
+        if value is not None:
+            return float(value.timestamp())
+    return 0.0
 
 
 def _ending(terminated: Any) -> str:

@@ -7,8 +7,13 @@ evaluator has exited: a policy that never exits cannot hold the pod, and its exi
 decides the pod's outcome. Both containers run under the "restricted" Pod Security profile,
 with no service-account token and no service links. They share one memory-backed emptyDir that
 holds the evaluator's Unix socket; the policy mounts it read-only (connecting to a socket needs
-no write access to the mount) and gets nothing else: no other volume, no env but
-MANIEVAL_ENDPOINT. `worker.kubernetes.client` creates, adopts, reads, and deletes those Jobs.
+no write access to the mount) and gets nothing else but what the docker executor gives it too:
+uid 65532, a 64 MiB memory-backed `/tmp`, and MANIEVAL_ENDPOINT, HOME=/tmp, PYTHONUNBUFFERED.
+Kubernetes has no per-pod process limit: the kubelet's `podPidsLimit` on the evaluation node
+pool bounds it (docs/deploy.md). The evaluation (its seeds) travels in a per-attempt Secret
+(`build_secret`) owned by the Job and mounted into the evaluator alone. Node selector,
+tolerations, priority class, runtime class and pull secrets come from the worker's settings.
+`worker.kubernetes.client` creates, adopts, reads, and deletes those Jobs.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from evaluator.endpoint import SOCKET_NAME
 from evaluator.job import (
     ENDPOINT_DIR,
     ENDPOINT_DIR_ENV,
-    JOB_SPEC_ENV,
+    JOB_SPEC_FILE_ENV,
     POLICY_ENV,
     SHARDS_ENV,
     EvaluationJob,
@@ -39,15 +44,28 @@ ROLE_LABEL = "manieval.io/role"
 INDEX_LABEL = "batch.kubernetes.io/job-completion-index"  # set by the Job controller
 APP, ROLE = "manieval", "evaluation"
 EVALUATOR, POLICY = "evaluator", "policy"
-EVALUATOR_UID, POLICY_UID, SHARED_GID = 10001, 10002, 10000
+EVALUATOR_UID, SHARED_GID = 10001, 10000
+POLICY_UID = 65532
+"""The `policy` user of docker/policy-base, as under the docker executor (worker.containers)."""
+POLICY_TMP_SIZE = "64Mi"  # the docker executor's /tmp tmpfs (ContainerLimits.tmpfs_mib)
+TOLERATION_KEYS = frozenset({"key", "operator", "value", "effect", "tolerationSeconds"})
+TOLERATION_OPERATORS = frozenset({"Exists", "Equal"})
+TOLERATION_EFFECTS = frozenset({"NoSchedule", "PreferNoSchedule", "NoExecute"})
 ENDPOINT_MOUNT = str(PurePosixPath(ENDPOINT_DIR).parent)
 SOCKET = f"unix://{ENDPOINT_DIR}/{SOCKET_NAME}"
 GPU_RESOURCE = "nvidia.com/gpu"
+EVALUATION_KEY = "evaluation.json"
+EVALUATION_MOUNT = "/etc/manieval-evaluation"
+"""Where the evaluator reads the evaluation (seeds included) from the attempt's Secret."""
 MAX_SHARDS = 64
-MAX_PAYLOAD_BYTES = 100_000  # one env string may not exceed 128 KiB (Linux MAX_ARG_STRLEN)
+MAX_PAYLOAD_BYTES = 100_000  # well under a Secret's 1 MiB
 _QUANTITY = re.compile(r"^(\d+(\.\d*)?|\.\d+)([KMGTPE]i|[numkMGTPE]|[eE][+-]?\d+)?$")
 _DNS_LABEL = re.compile(r"^[a-z0-9]([-a-z0-9]{0,61}[a-z0-9])?$")
 _DNS_NAME = re.compile(r"^[a-z0-9]([-a-z0-9.]{0,251}[a-z0-9])?$")
+_LABEL_KEY = re.compile(
+    r"^([a-z0-9]([-a-z0-9.]{0,251}[a-z0-9])?/)?[A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?$"
+)
+_LABEL_VALUE = re.compile(r"^([A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?)?$")
 _PINNED = re.compile(r"^[a-z0-9][^\s@]*@sha256:[0-9a-f]{64}$")
 
 
@@ -82,6 +100,14 @@ class JobSpec:
     runtime_class_name: str | None = None
     """Pod-level: with gVisor it sandboxes the evaluator as well as the policy."""
     shards: int = 1
+    node_selector: tuple[tuple[str, str], ...] = ()
+    """The pod's nodeSelector (key, value) pairs: the evaluation node pool."""
+    tolerations: tuple[tuple[tuple[str, str | int], ...], ...] = ()
+    """The pod's tolerations, each as (field, value) pairs (key, operator, value, effect,
+    tolerationSeconds): for tainted evaluation nodes."""
+    priority_class_name: str | None = None
+    image_pull_secrets: tuple[str, ...] = ()
+    """Secrets in the evaluation namespace to pull the evaluator's and policies' images."""
     scratch_size: str = "1Gi"
     evaluator_command: tuple[str, ...] = ("manieval", "evaluate-job")
 
@@ -107,6 +133,16 @@ class JobSpec:
             yield "the deadline must be positive and the TTL not negative"
         if self.runtime_class_name is not None and not _DNS_NAME.match(self.runtime_class_name):
             yield f"runtime class {self.runtime_class_name!r} is not a DNS name"
+        for key, value in self.node_selector:
+            if not _LABEL_KEY.match(key) or not _LABEL_VALUE.match(value):
+                yield f"node selector {key}={value} is not a label key and value"
+        for toleration in self.tolerations:
+            yield from _toleration_problems(dict(toleration))
+        if self.priority_class_name is not None and not _DNS_NAME.match(self.priority_class_name):
+            yield f"priority class {self.priority_class_name!r} is not a DNS name"
+        for secret in self.image_pull_secrets:
+            if not _DNS_NAME.match(secret):
+                yield f"image pull secret {secret!r} is not a DNS name"
         if not 1 <= self.shards <= MAX_SHARDS:
             yield f"shards must be within 1..{MAX_SHARDS}"
         if not self.evaluator_command:
@@ -127,6 +163,26 @@ class JobSpec:
         return job_name(self.submission_id, self.attempt)
 
 
+def _toleration_problems(toleration: dict[str, str | int]) -> Iterable[str]:
+    unknown = set(toleration) - TOLERATION_KEYS
+    if unknown:
+        yield f"toleration fields {sorted(unknown)} are unknown"
+    operator = toleration.get("operator", "Equal")
+    if operator not in TOLERATION_OPERATORS:
+        yield f"toleration operator {operator!r} is not Exists or Equal"
+    key, value = toleration.get("key", ""), toleration.get("value", "")
+    if not isinstance(key, str) or (key and not _LABEL_KEY.match(key)):
+        yield f"toleration key {key!r} is not a label key"
+    if not isinstance(value, str) or (operator == "Exists" and value):
+        yield f"toleration value {value!r} must be a string, and empty with Exists"
+    effect = toleration.get("effect", "")
+    if effect and effect not in TOLERATION_EFFECTS:
+        yield f"toleration effect {effect!r} is not one of {sorted(TOLERATION_EFFECTS)}"
+    seconds = toleration.get("tolerationSeconds")
+    if seconds is not None and (not isinstance(seconds, int) or effect != "NoExecute"):
+        yield "tolerationSeconds must be an integer, with effect NoExecute"
+
+
 def _values(*resources: Resources) -> list[str]:
     return [value for r in resources for value in r.as_dict().values()]
 
@@ -134,6 +190,33 @@ def _values(*resources: Resources) -> list[str]:
 def job_name(submission_id: int, attempt: int) -> str:
     """`eval-<submission>-<attempt>`."""
     return f"eval-{submission_id}-{attempt}"
+
+
+def secret_name(submission_id: int, attempt: int) -> str:
+    """`eval-<submission>-<attempt>-evaluation`: the attempt's evaluation document."""
+    return f"{job_name(submission_id, attempt)}-evaluation"
+
+
+def build_secret(spec: JobSpec, *, job_uid: str) -> dict[str, Any]:
+    """The Secret that carries the evaluation (its seeds: secret in the test phase) to the
+    evaluator container alone, so they appear in no Job or Pod object. Owned by the Job (uid
+    `job_uid`): the garbage collector deletes it with the Job, and nothing else has to."""
+    name = job_name(spec.submission_id, spec.attempt)
+    return {
+        "apiVersion": "v1",
+        "kind": "Secret",
+        "metadata": {
+            "name": secret_name(spec.submission_id, spec.attempt),
+            "namespace": spec.namespace,
+            "labels": job_labels(spec.submission_id, spec.attempt),
+            "ownerReferences": [
+                {"apiVersion": "batch/v1", "kind": "Job", "name": name, "uid": job_uid}
+            ],
+        },
+        "type": "Opaque",
+        "immutable": True,
+        "stringData": {EVALUATION_KEY: spec.evaluation.canonical_json()},
+    }
 
 
 def job_labels(submission_id: int, attempt: int) -> dict[str, str]:
@@ -203,10 +286,27 @@ def _pod_spec(spec: JobSpec) -> dict[str, Any]:
         "volumes": [
             {"name": "endpoint", "emptyDir": {"medium": "Memory", "sizeLimit": "1Mi"}},
             {"name": "scratch", "emptyDir": {"sizeLimit": spec.scratch_size}},
+            {"name": "policy-tmp", "emptyDir": {"medium": "Memory", "sizeLimit": POLICY_TMP_SIZE}},
+            {
+                "name": "evaluation",
+                "secret": {
+                    "secretName": secret_name(spec.submission_id, spec.attempt),
+                    "defaultMode": 0o444,  # the evaluator's uid owns no file of the volume
+                    "optional": False,  # the pod waits for the Secret, made after the Job
+                },
+            },
         ],
     }
     if spec.runtime_class_name is not None:
         pod["runtimeClassName"] = spec.runtime_class_name
+    if spec.node_selector:
+        pod["nodeSelector"] = dict(spec.node_selector)
+    if spec.tolerations:
+        pod["tolerations"] = [dict(t) for t in spec.tolerations]
+    if spec.priority_class_name is not None:
+        pod["priorityClassName"] = spec.priority_class_name
+    if spec.image_pull_secrets:
+        pod["imagePullSecrets"] = [{"name": name} for name in spec.image_pull_secrets]
     return pod
 
 
@@ -215,7 +315,7 @@ def _evaluator_container(spec: JobSpec) -> dict[str, Any]:
     if spec.gpu:
         resources[GPU_RESOURCE] = "1"
     env = {
-        JOB_SPEC_ENV: spec.evaluation.canonical_json(),
+        JOB_SPEC_FILE_ENV: f"{EVALUATION_MOUNT}/{EVALUATION_KEY}",
         POLICY_ENV: spec.policy_image,
         SHARDS_ENV: str(spec.shards),
         ENDPOINT_DIR_ENV: ENDPOINT_DIR,
@@ -234,6 +334,7 @@ def _evaluator_container(spec: JobSpec) -> dict[str, Any]:
         "volumeMounts": [
             {"name": "endpoint", "mountPath": ENDPOINT_MOUNT},
             {"name": "scratch", "mountPath": "/tmp"},
+            {"name": "evaluation", "mountPath": EVALUATION_MOUNT, "readOnly": True},
         ],
     }
 
@@ -245,10 +346,18 @@ def _policy_container(spec: JobSpec) -> dict[str, Any]:
         "image": spec.policy_image,
         "imagePullPolicy": "IfNotPresent",
         "restartPolicy": "Always",  # a sidecar: stopped by the kubelet when the evaluator ends
-        "env": [{"name": ENDPOINT_ENV, "value": SOCKET}],
+        # As under the docker executor (worker.containers.container_config).
+        "env": [
+            {"name": ENDPOINT_ENV, "value": SOCKET},
+            {"name": "HOME", "value": "/tmp"},
+            {"name": "PYTHONUNBUFFERED", "value": "1"},
+        ],
         "resources": {"requests": resources, "limits": dict(resources)},
         "securityContext": _security(POLICY_UID),
-        "volumeMounts": [{"name": "endpoint", "mountPath": ENDPOINT_MOUNT, "readOnly": True}],
+        "volumeMounts": [
+            {"name": "endpoint", "mountPath": ENDPOINT_MOUNT, "readOnly": True},
+            {"name": "policy-tmp", "mountPath": "/tmp"},  # memory-backed, as docker's tmpfs
+        ],
     }
 
 

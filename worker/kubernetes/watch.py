@@ -2,11 +2,14 @@
 
 The worker builds the Job (`worker.kubernetes.manifest.build_job`), creates it (adopting it on
 409), then looks every `k8s_poll_interval` seconds: the Job's conditions decide the end, the
-pods say when an image cannot be pulled (no point waiting for the deadline), and the
-evaluator's log gives the progress. Each look is also the attempt's heartbeat; when the server
-says the attempt is no longer running (cancelled, timed out by the reconciler) the Job is
-deleted. The result is read from the evaluator's log by this process: nothing in the pod can
-write one.
+pods say when an image cannot be pulled (no point waiting for the deadline) and when the
+cluster, not the policy, stopped the evaluation: a pod evicted, preempted or lost with its node
+(deleted or not) ends the attempt `error` at once, and pods unscheduled, pending or never
+created (a ResourceQuota refusing them) end it `error` after `k8s_pending_timeout_s`, each with
+the cluster's reason, never `timed_out` at the deadline. The evaluator's log gives the
+progress. Each look is also the attempt's heartbeat; when the server says the attempt is no
+longer running (cancelled, timed out by the reconciler) the Job is deleted. The result is read
+from the evaluator's log by this process: nothing in the pod can write one.
 """
 
 from __future__ import annotations
@@ -17,19 +20,20 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from datetime import timedelta
 from typing import Any
 
-from sqlalchemy.orm import Session, sessionmaker
-
 from evaluator.job import JobOutputError, evaluation_job, result_from_logs
-from evaluator.plan import EvaluationPlan, build_plan
+from evaluator.plan import EvaluationPlan
 from evaluator.sources import LOG_TAIL_BYTES
-from evaluator.suite import Suite
-from server.kit.settings import Settings
-from server.models import State, Submission, utcnow
-from server.submissions.reports import report_progress
-from worker.kubernetes.client import JobConflict, JobStatus, KubernetesError, KubernetesExecutor
+from internal_api.schemas import Assignment, FinalReport, State
+from worker.kubernetes.client import (
+    JobConflict,
+    JobStatus,
+    KubernetesError,
+    KubernetesExecutor,
+    PodView,
+    no_client_retries,
+)
 from worker.kubernetes.manifest import (
     EVALUATOR,
     POLICY,
@@ -39,7 +43,9 @@ from worker.kubernetes.manifest import (
     job_name,
     needs_gpu,
 )
-from worker.outcome import conclude, final_state, finish, start_running
+from worker.outcome import conclusion, ended
+from worker.server_api import ServerAPI, ServerUnavailable
+from worker.settings import WorkerSettings
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +56,7 @@ PROGRESS_EVERY = 3  # looks per read of the evaluator's log (each look is 2 API 
 _EPISODE_LINE = re.compile(r"^manieval: run (\d+) episode \d+:", re.MULTILINE)
 
 
-def kubernetes_executor(settings: Settings) -> KubernetesExecutor:
+def kubernetes_executor(settings: WorkerSettings) -> KubernetesExecutor:
     """An executor for the configured cluster: in-cluster service account, an API URL without
     credentials (`kubectl proxy`, tests), or a kubeconfig."""
     from kubernetes import config
@@ -66,29 +72,23 @@ def kubernetes_executor(settings: Settings) -> KubernetesExecutor:
         config.load_kube_config(  # type: ignore[no-untyped-call]
             config_file=path, client_configuration=configuration
         )
+    no_client_retries(configuration)
     return KubernetesExecutor(ApiClient(configuration), settings.k8s_namespace)
 
 
-def job_spec(
-    settings: Settings,
-    submission_id: int,
-    attempt: int,
-    plan: EvaluationPlan,
-    *,
-    suite: Suite,
-    suite_yaml: str,
-    pinned: str,
-) -> JobSpec:
-    """The Job of this attempt, from the plan and the worker's settings (ValueError if bad)."""
+def job_spec(settings: WorkerSettings, handed: Assignment) -> JobSpec:
+    """The Job of this attempt, from its evaluation and the worker's settings (ValueError if
+    bad)."""
     if not settings.evaluator_image:
         raise ValueError("no evaluator image is configured (MANIEVAL_EVALUATOR_IMAGE)")
+    plan = handed.plan
     return JobSpec(
-        submission_id=submission_id,
-        attempt=attempt,
+        submission_id=handed.submission_id,
+        attempt=handed.attempt,
         namespace=settings.k8s_namespace,
         evaluator_image=settings.evaluator_image,
-        policy_image=pinned,
-        evaluation=evaluation_job(plan, suite_yaml=suite_yaml),
+        policy_image=handed.image,
+        evaluation=evaluation_job(plan, suite_yaml=handed.suite_yaml),
         evaluator_resources=Resources(settings.evaluator_cpu, settings.evaluator_memory, "2Gi"),
         policy_resources=Resources(
             cpu=f"{round(settings.policy_cpus * 1000)}m",
@@ -98,36 +98,34 @@ def job_spec(
         gpu=needs_gpu(plan),
         active_deadline_seconds=active_deadline_for(plan.limits),
         runtime_class_name=settings.k8s_runtime_class,
-        shards=min(suite.shards, plan.episode_count()),
+        shards=handed.shards,
+        node_selector=tuple(sorted(settings.k8s_node_selector.items())),
+        tolerations=tuple(tuple(t.items()) for t in settings.k8s_tolerations),
+        priority_class_name=settings.k8s_priority_class,
+        image_pull_secrets=settings.k8s_image_pull_secrets,
     )
 
 
 def run_as_job(
-    sessions: sessionmaker[Session],
-    settings: Settings,
-    submission_id: int,
-    attempt: int,
+    api: ServerAPI,
+    settings: WorkerSettings,
+    handed: Assignment,
     *,
-    suite: Suite,
-    suite_yaml: str,
-    phase: str,
-    pinned: str,
     stop: threading.Event | None = None,
 ) -> State | None:
     """Run a claimed (`launching`) attempt as a Job; returns the state it ended in. `stop`
     (tests, shutdown) ends the watch early and leaves the Job to the reconciler."""
     try:
-        watch = _watch_for(
-            sessions, settings, submission_id, attempt, suite, suite_yaml, phase, pinned, stop
-        )
+        watch = _watch_for(api, settings, handed, stop)
     except Exception as exc:  # our configuration: error, with the reason
-        return finish(sessions, submission_id, attempt, State.ERROR, f"cannot run: {exc}")
+        report = ended(State.ERROR, f"cannot run: {exc}")
+        return api.final(handed.submission_id, handed.attempt, report)
     return _guarded(watch, watch.run)
 
 
 def resume_watch(
-    sessions: sessionmaker[Session],
-    settings: Settings,
+    api: ServerAPI,
+    settings: WorkerSettings,
     submission_id: int,
     attempt: int,
     *,
@@ -135,44 +133,23 @@ def resume_watch(
 ) -> State | None:
     """Watch the Job of a `running` attempt whose watcher was lost (a worker killed): the
     reconciler asks for this when the Job still exists, so the evaluation is not thrown away."""
-    from server.challenges.service import suite_of
-
-    with sessions() as db:
-        submission = db.get(Submission, submission_id)
-        if submission is None or submission.attempt != attempt:
-            return None
-        if submission.state != State.RUNNING:
-            return submission.state
-        suite = suite_of(submission.challenge)
-        suite_yaml, phase = submission.challenge.suite_yaml, submission.phase.name
-        pinned = submission.pinned_image
+    handed = api.assignment(submission_id, attempt)
+    if handed is None:
+        return None  # ended or replaced meanwhile: nothing to watch
     try:
-        watch = _watch_for(
-            sessions, settings, submission_id, attempt, suite, suite_yaml, phase, pinned, stop
-        )
+        watch = _watch_for(api, settings, handed, stop)
     except Exception as exc:
-        return finish(sessions, submission_id, attempt, State.ERROR, f"cannot run: {exc}")
+        return api.final(submission_id, attempt, ended(State.ERROR, f"cannot run: {exc}"))
     log.info("resuming the watch of Job %s", watch.spec.name)
-    return _guarded(watch, watch.follow)
+    return _guarded(watch, watch.resume)
 
 
 def _watch_for(
-    sessions: sessionmaker[Session],
-    settings: Settings,
-    submission_id: int,
-    attempt: int,
-    suite: Suite,
-    suite_yaml: str,
-    phase: str,
-    pinned: str,
-    stop: threading.Event | None,
+    api: ServerAPI, settings: WorkerSettings, handed: Assignment, stop: threading.Event | None
 ) -> _Watch:
-    plan = build_plan(suite, phase, secret=settings.secret("seed_secret").encode())
-    spec = job_spec(
-        settings, submission_id, attempt, plan, suite=suite, suite_yaml=suite_yaml, pinned=pinned
-    )
+    spec = job_spec(settings, handed)
     executor = kubernetes_executor(settings)
-    return _Watch(sessions, settings, executor, spec, plan, stop or threading.Event())
+    return _Watch(api, settings, executor, spec, handed.plan, stop or threading.Event())
 
 
 def _guarded(watch: _Watch, body: Callable[[], State | None]) -> State | None:
@@ -187,35 +164,45 @@ def _guarded(watch: _Watch, body: Callable[[], State | None]) -> State | None:
 
 @dataclass
 class _Watch:
-    sessions: sessionmaker[Session]
-    settings: Settings
+    api: ServerAPI
+    settings: WorkerSettings
     executor: KubernetesExecutor
     spec: JobSpec
     plan: EvaluationPlan
     stop: threading.Event
     _looks: int = 0
     _read_progress: dict[str, Any] = field(default_factory=dict)
+    _state: State | None = None
+    _pending_since: float | None = None
+    _seen: frozenset[str] = frozenset()
 
     @property
     def ids(self) -> tuple[int, int]:
         return self.spec.submission_id, self.spec.attempt
 
     def run(self) -> State | None:
-        deadline = utcnow() + timedelta(
-            seconds=self.spec.active_deadline_seconds + DEADLINE_GRACE_S
-        )
+        deadline_s = self.spec.active_deadline_seconds + DEADLINE_GRACE_S
         reason = f"evaluating as Kubernetes Job {self.spec.name}"
-        if not start_running(self.sessions, *self.ids, deadline, reason):
-            return final_state(self.sessions, self.spec.submission_id)
+        running = self.api.running(*self.ids, reason=reason, deadline_s=deadline_s)
+        if running is None or not running.applied:
+            return running.state if running is not None else None
         try:
             started = self.executor.start(self.spec)
         except JobConflict as exc:  # not ours to delete: another deployment's, or being deleted
             reason = f"cannot create the evaluation Job: {exc}"
-            return finish(self.sessions, *self.ids, State.ERROR, reason)
+            return self._report(ended(State.ERROR, reason))
         except KubernetesError as exc:
             return self.end(State.ERROR, f"cannot create the evaluation Job: {exc}")
         if started.adopted:
             log.info("adopted the existing Job %s", started.name)
+        return self.follow()
+
+    def resume(self) -> State | None:
+        """Follow a Job whose watcher was lost, giving it its Secret if that died with it."""
+        try:
+            self.executor.give_evaluation(self.spec)
+        except KubernetesError as exc:  # gone (the next look says so) or the API: look anyway
+            log.warning("Job %s: its evaluation Secret: %s", self.spec.name, exc)
         return self.follow()
 
     def follow(self) -> State | None:
@@ -240,13 +227,16 @@ class _Watch:
                     return self._cancelled()
                 continue
             return self._concluded(status)
-        return final_state(self.sessions, self.spec.submission_id)
+        return None  # stopped: the Job runs on, and the reconciler hands it to a new watcher
 
     def _look(self, status: JobStatus) -> State | None:
         """One look at a live Job: stuck pods end it, else report progress (the heartbeat)."""
         view = self.executor.pods(*self.ids)
         if view.stuck is not None:
             return self.end(State.ERROR, f"the evaluation could not start: {view.stuck}")
+        cluster = self._cluster_failure(view)
+        if cluster is not None:
+            return self.end(State.ERROR, f"the cluster stopped the evaluation: {cluster}")
         progress: dict[str, Any] = {"phase": status.phase, "done": 0}
         if view.evaluating:
             if self._looks % PROGRESS_EVERY == 0:  # the log is the costly read: not every look
@@ -256,6 +246,44 @@ class _Watch:
         if not self._beat(progress):
             return self._cancelled()
         return None
+
+    def _cluster_failure(self, view: PodView) -> str | None:
+        """The cluster's doing, said as it says it: a pod evicted, preempted or lost with its
+        node (deleted or not), or no pod running past `k8s_pending_timeout_s` (unschedulable,
+        refused by a ResourceQuota, never created). None while the Job may still run."""
+        if view.disrupted is not None:
+            return view.disrupted
+        gone = sorted(self._seen - view.names)
+        if gone and self.executor.status(*self.ids).phase in ("pending", "running"):
+            # A live pod vanished while the Job runs on (not its deadline, which deletes pods
+            # too): evicted and deleted, preempted, or garbage-collected with a lost node.
+            return f"pod {gone[0]} was deleted (evicted, preempted, or its node was lost)"
+        if gone:
+            return None  # the Job has just ended: the next look concludes it
+        self._seen = view.alive
+        now = time.monotonic()
+        if view.started >= self.spec.shards:
+            self._pending_since = None
+            return None
+        if self._pending_since is None:
+            self._pending_since = now
+            return None
+        waited = now - self._pending_since
+        if waited <= self.settings.k8s_pending_timeout_s:
+            return None
+        if view.unschedulable is not None:
+            return f"its pod could not be scheduled in {waited:.0f} s: {view.unschedulable}"
+        if view.count == 0:
+            return f"no pod was created in {waited:.0f} s{self._warnings()}"
+        return f"its pod stayed pending for {waited:.0f} s{self._warnings()}"
+
+    def _warnings(self) -> str:
+        try:
+            warnings = self.executor.events(*self.ids)
+        except KubernetesError as exc:
+            log.warning("Job %s: its events could not be read: %s", self.spec.name, exc)
+            return ""
+        return f": {warnings[-1]}" if warnings else ""
 
     def _progress(self) -> dict[str, Any]:
         logs = self.executor.collect(*self.ids, container=EVALUATOR)
@@ -267,16 +295,25 @@ class _Watch:
         return progress
 
     def _beat(self, progress: dict[str, Any]) -> bool:
+        """Report progress; False when the attempt ended elsewhere (its state is kept)."""
         progress.setdefault("total", self.plan.episode_count())
-        with self.sessions.begin() as db:
-            return report_progress(db, *self.ids, progress)
+        try:
+            out = self.api.progress(*self.ids, progress)
+        except ServerUnavailable as exc:  # the next look tries again; the Job runs on
+            log.warning("Job %s: progress not delivered: %s", self.spec.name, exc)
+            return True
+        self._state = out.state
+        return out.applied
 
     def _concluded(self, status: JobStatus) -> State | None:
         if status.phase == "succeeded":
             return self._collect()
         if status.phase == "deadline_exceeded":
-            if self.executor.pods(*self.ids).disrupted:  # the cluster's doing, not the policy's
-                reason = "the cluster evicted the evaluation and it then ran out of time"
+            disrupted = self.executor.pods(*self.ids).disrupted
+            if disrupted is not None:  # the cluster's doing, not the policy's
+                reason = (
+                    f"the cluster evicted the evaluation and it then ran out of time: {disrupted}"
+                )
                 return self.end(State.ERROR, reason)
             return self.end(State.TIMED_OUT, "the evaluation exceeded its time budget")
         if status.phase == "missing":
@@ -290,7 +327,7 @@ class _Watch:
         except (KubernetesError, JobOutputError) as exc:
             return self.end(State.ERROR, f"the evaluation's result could not be read: {exc}")
         policy_ended, policy_log = self._policy_side()
-        state = conclude(self.sessions, *self.ids, result, log_tail=policy_log, detail=policy_ended)
+        state = self._report(conclusion(result, log_tail=policy_log, detail=policy_ended))
         self._delete()
         return state
 
@@ -307,14 +344,17 @@ class _Watch:
 
     def end(self, state: State, reason: str) -> State | None:
         log.info("Job %s: %s: %s", self.spec.name, state.value, reason)
-        ended = finish(self.sessions, *self.ids, state, reason)
+        final = self._report(ended(state, reason))
         self._delete()
-        return ended
+        return final
+
+    def _report(self, report: FinalReport) -> State | None:
+        return self.api.final(*self.ids, report)
 
     def _cancelled(self) -> State | None:
         """The attempt ended elsewhere (cancel, the reconciler): its Job goes too."""
         self._delete()
-        return final_state(self.sessions, self.spec.submission_id)
+        return self._state
 
     def _delete(self) -> None:
         try:

@@ -9,18 +9,16 @@ serving until interrupted. A second run reuses the same data and skips finished 
 from __future__ import annotations
 
 import secrets
-import threading
 import time
 from pathlib import Path
 
 import httpx
-import uvicorn
 from rich.console import Console
 from rich.table import Table
 from sqlalchemy import select
 
+from manieval.service import Service
 from server.accounts import service as accounts
-from server.app import create_app
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
@@ -47,22 +45,10 @@ def run_demo(
             seed_secret=settings.secret("seed_secret"),
         )
         password = _demo_account(db, settings.data_dir)
-    server = uvicorn.Server(
-        uvicorn.Config(
-            create_app(settings, sessions=sessions),
-            host=host,
-            port=port,
-            log_level="warning",
-            timeout_graceful_shutdown=5,  # open live streams must not hold a Ctrl-C
-        )
-    )
-    thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
-    thread.start()
-    while not server.started:
-        if not thread.is_alive():
-            console.print(f"[red]the server could not start on {url} (port in use?)[/]")
-            return 1
-        time.sleep(0.05)
+    service = Service(settings, host=host, port=port, sessions=sessions)
+    if not service.start():
+        console.print(f"[red]the server could not start on {url} (port in use?)[/]")
+        return 1
     console.print(f"ManiEval is running at [bold]{url}[/] (API docs: {url}/docs)")
     console.print(f"data: {settings.data_dir}; log in as [bold]demo[/] / {password}")
     try:
@@ -79,12 +65,11 @@ def run_demo(
         if exit_when_done:
             return 0
         console.print("serving; press Ctrl-C to stop")
-        thread.join()
+        service.wait()
     except KeyboardInterrupt:
         pass
     finally:
-        server.should_exit = True
-        thread.join(timeout=10)
+        service.stop()
     return 0
 
 

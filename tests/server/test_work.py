@@ -7,11 +7,11 @@ from collections import Counter
 
 from hypothesis import given
 from hypothesis import strategies as st
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session, joinedload, sessionmaker
 
 from server.models import State, Submission
+from server.submissions.work import claim_next, fair_order
 from tests.factories import make_challenge, make_user, queue_submission
-from worker.scheduling import claim_next, fair_order
 
 
 def test_a_burst_from_one_user_does_not_starve_the_others() -> None:
@@ -53,10 +53,11 @@ def _queue(db: Session, n_per_user: dict[str, int]) -> None:
 def test_claim_next_interleaves_and_respects_the_cap(db: Session) -> None:
     _queue(db, {"alice": 3, "bob": 1})
     owners = []
-    while (claimed := claim_next(db, max_running_per_user=2)) is not None:
-        s = db.get(Submission, claimed[0])
+    while (claimed := claim_next(db, worker="w1", max_running_per_user=2)) is not None:
+        s = db.get(Submission, claimed[0], options=[joinedload(Submission.user)])
         assert s is not None
         assert s.state == State.LAUNCHING
+        assert s.worker == "w1"  # who claimed it: a restarted w1 ends it at once
         owners.append(s.user.username)
     assert owners == ["alice", "bob", "alice"]  # alice's third waits for one of hers to end
 
@@ -72,7 +73,7 @@ def test_racing_workers_never_claim_the_same_attempt(
     def worker() -> None:
         with committed_sessions() as db:
             barrier.wait()
-            while (claimed := claim_next(db, max_running_per_user=100)) is not None:
+            while (claimed := claim_next(db, worker="w", max_running_per_user=100)) is not None:
                 claims.append(claimed)
 
     threads = [threading.Thread(target=worker) for _ in range(6)]

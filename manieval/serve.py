@@ -1,0 +1,64 @@
+"""`manieval serve` and `manieval demo`: the server composed with its worker, in one process."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from server.cli import console, migrated_sessions, settings
+
+
+def serve(
+    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=1, max=65535)] = 8000,
+    migrate: Annotated[
+        bool,
+        typer.Option(
+            help="Bring the schema up to date first. With --no-migrate (several replicas, a "
+            "migration Job) the server refuses to start on a schema that is not current."
+        ),
+    ] = True,
+) -> None:
+    """Run the service: the API and, on the embedded default, its worker (migrating the
+    database first)."""
+    from internal_api.logs import configure_logging
+    from manieval.service import Service
+
+    s = settings()
+    configure_logging(s.log_format, s.log_level)
+    if migrate:
+        sessions = migrated_sessions(s)
+    else:
+        from server.kit.db import make_engine, schema_problem, session_factory
+
+        problem = schema_problem(s.resolved_database_url)
+        if problem is not None:
+            console.print(f"[red]cannot start:[/] {problem}")
+            raise typer.Exit(3)
+        sessions = session_factory(make_engine(s.resolved_database_url))
+    console.print(f"ManiEval on http://{host}:{port}  (data: {s.data_dir}, docs: /docs)")
+    Service(s, host=host, port=port, sessions=sessions).run()
+
+
+def demo(
+    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=1, max=65535)] = 8000,
+    episodes: Annotated[int, typer.Option(min=1, help="Episodes per task.")] = 3,
+    exit_when_done: Annotated[
+        bool, typer.Option(help="Stop once the example policies are evaluated.")
+    ] = False,
+) -> None:
+    """Run the service locally with the example policies evaluated on the leaderboard."""
+    import os
+
+    from manieval.demo import run_demo
+
+    os.environ.setdefault("MANIEVAL_DEV_MODE", "true")
+    os.environ.setdefault("MANIEVAL_ALLOW_LOCAL_POLICIES", "true")
+    os.environ.setdefault("MANIEVAL_COOKIE_SECURE", "false")
+    os.environ.setdefault("MANIEVAL_INLINE_WORKERS", str(min(2, os.cpu_count() or 1)))
+    code = run_demo(
+        settings(), host=host, port=port, episodes=episodes, exit_when_done=exit_when_done
+    )
+    raise typer.Exit(code)

@@ -1,0 +1,340 @@
+"""Database outages: nothing finished is lost, no wake-up is dropped, submits are told 503.
+
+A private Postgres that the test stops and starts (`pg_ctl -m fast`: connections are cut, as
+in a real restart) behind a real server (uvicorn, the Celery queue), a private redis-server,
+and a real `celery worker` process started with no database URL and no secret key: it
+reaches the server only through /internal/v1. No reconciler runs here: a wake-up or a report
+that the worker dropped would never be made up for, and the test would wait in vain.
+
+The figures of each round (how long a queued submission waited for its claim once the
+database was back, how many final reports were delivered after an outage) are printed
+(`pytest -s`) and written to `$MANIEVAL_ARTEFACTS/outages.txt` when that is set.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import redis as redis_client
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from manieval.service import Service
+from server.kit.settings import Settings
+from server.models import State, Submission, Transition, utcnow
+from server.submissions.work import assignment
+from tests.factories import PASSWORD, embedded_database
+from tests.private_postgres import PrivatePostgres
+from tests.worker.redis_server import Redis, free_port
+from tests.worker.test_celery import add_challenge, celery_worker, wait_ready, worker_environment
+
+pytestmark = [pytest.mark.sim, pytest.mark.timeout(900)]
+ROUNDS = 10
+CLAIM_ROUNDS = 3  # each round stops the database at the same point of a claim
+OUTAGE_S = 5.0
+FINAL = {"succeeded", "failed", "error", "cancelled", "timed_out"}
+REPO = Path(__file__).resolve().parents[2]
+# A run of the scripted policy long enough to span an outage of OUTAGE_S (about 15 s here).
+MID = {"max_episode_steps: 12, episodes: 2": "max_episode_steps: 60, episodes: 4"}
+
+
+@dataclass
+class Stack:
+    pg: PrivatePostgres
+    settings: Settings
+    api: httpx.Client
+    sessions: sessionmaker[Session]
+    worker: subprocess.Popen[bytes]
+    worker_log: Path
+    broker: redis_client.Redis
+    figures: list[str] = field(default_factory=list)
+
+    def note(self, line: str) -> None:
+        print(line, flush=True)
+        self.figures.append(line)
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
+    work = tmp_path_factory.mktemp("outages")
+    pg = PrivatePostgres()
+    redis = Redis(work)
+    service: Service | None = None
+    worker: subprocess.Popen[bytes] | None = None
+    try:
+        pg.start()
+        redis.start()
+        settings = Settings(
+            dev_mode=True,
+            data_dir=work / "server",
+            database_url=pg.url,
+            queue="celery",
+            broker_url=redis.url,
+            celery_queue=f"outages-{redis.port}",
+            allow_local_policies=True,
+            cookie_secure=False,
+            submit_rate="1000/minute",
+            token_rate="1000/minute",
+        )
+        sessions = embedded_database(settings, quota_concurrent=50, quota_per_day=1000)
+        add_challenge(settings, "server-mid", **MID)
+        service = Service(settings, port=free_port())
+        assert service.start(), "the server did not start"
+        log = work / "worker.log"
+        env = worker_environment(settings, server_url=service.url, data_dir=work / "worker")
+        worker = celery_worker(
+            env, queues=settings.celery_queue, policies=REPO / "examples" / "policies", log=log
+        )
+        wait_ready(worker, log)
+        api = httpx.Client(base_url=f"{service.url}/api/v1", timeout=60)
+        r = api.post(
+            "/users", json={"username": "alice", "email": "a@example.org", "password": PASSWORD}
+        )
+        assert r.status_code == 201, r.text
+        r = api.post("/auth/token", json={"login": "alice", "password": PASSWORD})
+        assert r.status_code == 201, r.text
+        api.headers["Authorization"] = f"Bearer {r.json()['token']}"
+        broker = redis_client.Redis.from_url(redis.url)
+        stack = Stack(pg, settings, api, sessions, worker, log, broker)
+        yield stack
+        api.close()
+        broker.close()
+        sessions.kw["bind"].dispose()
+        if stack.figures and (artefacts := os.environ.get("MANIEVAL_ARTEFACTS")):
+            path = Path(artefacts) / "outages.txt"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text("\n".join(stack.figures) + "\n")
+    finally:
+        if worker is not None and worker.poll() is None:
+            os.killpg(worker.pid, signal.SIGKILL)
+            worker.wait(30)
+        if service is not None:
+            service.stop()
+        redis.stop()
+        pg.remove()
+
+
+def submit(stack: Stack, challenge: str = "server-tiny") -> int:
+    r = stack.api.post("/submissions", json={"challenge": challenge, "image": "local:scripted"})
+    assert r.status_code == 202, r.text
+    return int(r.json()["id"])
+
+
+def refused(stack: Stack) -> None:
+    """A submit while the database is down: 503, with when to try again."""
+    r = stack.api.post("/submissions", json={"challenge": "server-tiny", "image": "local:scripted"})
+    assert r.status_code == 503, r.text
+    assert int(r.headers["Retry-After"]) > 0
+    assert r.json()["error"]["code"] == "unavailable"
+
+
+def wait_for(
+    stack: Stack, sid: int, until: Callable[[dict[str, Any]], bool], timeout: float = 300
+) -> dict[str, Any]:
+    """Poll until `until(body)`; while the database is down the server may only say 503."""
+    deadline = time.monotonic() + timeout
+    body: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        r = stack.api.get(f"/submissions/{sid}")
+        if r.status_code == 200:
+            body = r.json()
+            if until(body):
+                return body
+        else:
+            assert r.status_code == 503, r.text
+            assert "Retry-After" in r.headers
+        time.sleep(0.1)
+    raise AssertionError(f"submission {sid}: waited {timeout} s in vain: {body}")
+
+
+def final(stack: Stack, sid: int) -> dict[str, Any]:
+    return wait_for(stack, sid, lambda body: body["state"] in FINAL)
+
+
+@contextmanager
+def database_down(stack: Stack) -> Iterator[None]:
+    """The database is stopped inside the block; it is started again however the block ends."""
+    stack.pg.stop()
+    try:
+        yield
+    finally:
+        stack.pg.start()
+
+
+def outage(stack: Stack) -> tuple[datetime, datetime]:
+    """Stop the database for OUTAGE_S; every submit meanwhile is a 503 with Retry-After.
+    Returns (when it stopped, when it was back)."""
+    stopped = utcnow()
+    with database_down(stack):
+        refused(stack)
+        time.sleep(OUTAGE_S / 2)
+        refused(stack)
+        time.sleep(OUTAGE_S / 2)
+    return stopped, utcnow()
+
+
+def at(value: object) -> datetime:
+    return datetime.fromisoformat(str(value))
+
+
+def history(stack: Stack, sid: int) -> list[State]:
+    with stack.sessions() as db:
+        return list(
+            db.scalars(
+                select(Transition.to_state)
+                .where(Transition.submission_id == sid)
+                .order_by(Transition.id)
+            )
+        )
+
+
+def ran_once(stack: Stack, sid: int) -> None:
+    """Succeeded in its first attempt, evaluated exactly once."""
+    assert history(stack, sid) == [State.QUEUED, State.LAUNCHING, State.RUNNING, State.SUCCEEDED]
+    with stack.sessions() as db:
+        submission = db.get(Submission, sid)
+        assert submission is not None
+        assert submission.attempt == 1
+
+
+def idle(stack: Stack) -> None:
+    """Until the worker has taken every wake-up in the broker and acknowledged it."""
+    queue = stack.settings.celery_queue
+    deadline = time.monotonic() + 120
+    while stack.broker.llen(queue) or stack.broker.hlen("unacked"):
+        assert time.monotonic() < deadline, "the worker left its wake-ups in the broker"
+        time.sleep(0.1)
+
+
+def spool_empty(stack: Stack) -> None:
+    assert not list(stack.worker_log.parent.glob("worker/spool/*.json"))
+
+
+def test_the_database_stops_during_runs_and_their_final_reports(stack: Stack) -> None:
+    after = 0
+    for n in range(1, ROUNDS + 1):
+        sid = submit(stack)
+        wait_for(stack, sid, lambda body: body["state"] in {"running"} | FINAL)
+        stopped, back = outage(stack)  # the tiny evaluation ends meanwhile: its report waits
+        body = final(stack, sid)
+        assert body["state"] == "succeeded", body
+        ran_once(stack, sid)
+        waited = at(body["finished_at"]) >= stopped
+        after += waited
+        delivered = (at(body["finished_at"]) - back).total_seconds()
+        stack.note(
+            f"final report round {n:2}: database down {(back - stopped).total_seconds():.1f} s; "
+            + (f"report delivered {delivered:+.1f} s after it was back" if waited else
+               "report delivered before the outage")
+        )  # fmt: skip
+    stack.note(f"final reports delivered after an outage: {after} of {ROUNDS}")
+    spool_empty(stack)
+
+
+def test_the_database_stops_in_the_middle_of_longer_runs(stack: Stack) -> None:
+    after = 0
+    for n in range(1, ROUNDS + 1):
+        sid = submit(stack, "server-mid")
+        body = wait_for(
+            stack, sid, lambda b: b["state"] in FINAL or bool((b["progress"] or {}).get("done"))
+        )
+        progress = body["progress"]
+        stopped, back = outage(stack)
+        body = final(stack, sid)
+        assert body["state"] == "succeeded", body
+        ran_once(stack, sid)
+        after += at(body["finished_at"]) >= stopped
+        stack.note(
+            f"mid-run round {n:2}: database down {(back - stopped).total_seconds():.1f} s after "
+            f"{progress['done']} of {progress['total']} episodes; the run ended "
+            f"{(at(body['finished_at']) - back).total_seconds():+.1f} s after it was back"
+        )
+    stack.note(f"longer runs ending after their outage: {after} of {ROUNDS}")
+    spool_empty(stack)
+
+
+def test_a_wake_up_delivered_during_an_outage_is_not_lost(stack: Stack) -> None:
+    queue = stack.settings.celery_queue
+    delays: list[float] = []
+    for n in range(1, ROUNDS + 1):
+        idle(stack)  # no stray wake-up of an earlier round may stand in for this one
+        os.killpg(stack.worker.pid, signal.SIGSTOP)  # the wake-up waits in the broker
+        try:
+            sid = submit(stack)
+            stack.pg.stop()
+        finally:
+            os.killpg(stack.worker.pid, signal.SIGCONT)
+        try:
+            deadline = time.monotonic() + 60
+            while stack.broker.llen(queue) or not stack.broker.hlen("unacked"):
+                # the worker takes the wake-up (holding it until its task ends): it cannot claim
+                assert time.monotonic() < deadline, "the worker did not take its wake-up"
+                time.sleep(0.05)
+            refused(stack)
+            time.sleep(OUTAGE_S)
+        finally:
+            stack.pg.start()
+        back = utcnow()
+        body = wait_for(stack, sid, lambda b: b["state"] != "queued", timeout=120)
+        claimed = next(t["at"] for t in body["transitions"] if t["to_state"] == "launching")
+        delays.append((at(claimed) - back).total_seconds())
+        stack.note(f"wake-up round {n:2}: claimed {delays[-1]:.1f} s after the database was back")
+        assert final(stack, sid)["state"] == "succeeded"
+        ran_once(stack, sid)
+    stack.note(
+        "wake-up to claim after the database came back: "
+        + ", ".join(f"{d:.1f}" for d in sorted(delays))
+        + " s"
+    )
+
+
+def test_the_database_stops_between_a_claim_and_its_answer(
+    stack: Stack, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The server has moved the submission to `launching` for the worker and is reading its
+    evaluation when the database stops: the claim must not be half made (a submission
+    `launching` for a worker that got a 503 would wait for the reconciler's launch timeout;
+    none runs here). The worker's retry claims it once the database is back."""
+    armed, down = threading.Event(), threading.Event()
+
+    def dying(db: Session, **kwargs: Any) -> Any:
+        if armed.is_set():
+            armed.clear()
+            stack.pg.stop()
+            down.set()
+        return assignment(db, **kwargs)
+
+    monkeypatch.setattr("server.submissions.internal.assignment", dying)
+    for n in range(1, CLAIM_ROUNDS + 1):
+        idle(stack)
+        down.clear()
+        armed.set()
+        try:
+            sid = submit(stack)
+            assert down.wait(120), "the worker never claimed"
+            refused(stack)
+            time.sleep(OUTAGE_S)
+        finally:
+            armed.clear()
+            stack.pg.start()
+        back = utcnow()
+        body = wait_for(stack, sid, lambda b: b["state"] in FINAL, timeout=120)
+        assert body["state"] == "succeeded", body
+        ran_once(stack, sid)
+        claimed = next(t["at"] for t in body["transitions"] if t["to_state"] == "launching")
+        stack.note(
+            f"mid-claim round {n}: claimed again {(at(claimed) - back).total_seconds():.1f} s "
+            "after the database was back"
+        )
