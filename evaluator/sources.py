@@ -21,7 +21,8 @@ from typing import IO, Protocol, runtime_checkable
 
 from evaluator import sandbox
 from evaluator.results import FailureKind
-from evaluator.sandbox import Sandbox, SandboxLimits
+from evaluator.sandbox import Sandbox
+from evaluator.sandbox_command import SandboxLimits
 
 log = logging.getLogger(__name__)
 

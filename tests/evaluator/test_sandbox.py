@@ -20,16 +20,13 @@ from evaluator import sandbox, sources
 from evaluator.endpoint import PolicyEndpoint
 from evaluator.evaluation import evaluate
 from evaluator.results import EvaluationResult
-from evaluator.sandbox import (
+from evaluator.sandbox import Breach, Usage, breached, minimal_cover
+from evaluator.sandbox_command import (
     MIB,
     SANDBOX_UID,
-    Breach,
     SandboxLimits,
     SandboxSpec,
-    Usage,
-    breached,
     bwrap_command,
-    minimal_cover,
     staged_command,
 )
 from evaluator.sources import LocalDirectory
