@@ -28,10 +28,8 @@ from evaluator.sources import LOG_TAIL_BYTES
 from internal_api.schemas import Assignment, FinalReport, State
 from worker.kubernetes.client import (
     JobConflict,
-    JobStatus,
     KubernetesError,
     KubernetesExecutor,
-    PodView,
     no_client_retries,
 )
 from worker.kubernetes.manifest import (
@@ -43,6 +41,7 @@ from worker.kubernetes.manifest import (
     job_name,
     needs_gpu,
 )
+from worker.kubernetes.status import JobStatus, PodView
 from worker.outcome import conclusion, ended
 from worker.server_api import ServerAPI, ServerUnavailable
 from worker.settings import WorkerSettings

@@ -1,0 +1,242 @@
+"""What Job, pod and event objects say, read into the executor's view (pure, no I/O).
+
+`job_status` reads a Job's conditions, `job_ref` a listed Job's attempt, and `pod_view` an
+attempt's pods: a container that cannot start (its image cannot be pulled, say), how the policy
+container last ended, and whether the cluster (not the evaluation) evicted, preempted, lost or
+could not schedule a pod, so the worker can give every run a reason. `pods_by_index` picks the
+pod whose log stands for each shard, and `warnings` reads the cluster's warnings about a Job.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, replace
+from datetime import datetime
+from typing import Any, Literal
+
+from kubernetes.client import V1Job, V1Pod
+
+from worker.kubernetes.manifest import (
+    ATTEMPT_LABEL,
+    EVALUATOR,
+    INDEX_LABEL,
+    POLICY,
+    SUBMISSION_LABEL,
+)
+
+Phase = Literal["pending", "running", "succeeded", "failed", "deadline_exceeded", "missing"]
+
+
+@dataclass(frozen=True)
+class JobStatus:
+    """Where a Job is, from its conditions; `reason` says why it failed."""
+
+    phase: Phase
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class JobRef:
+    """A Job of ours as listed: which attempt it runs and where it is."""
+
+    name: str
+    submission_id: int
+    attempt: int
+    status: JobStatus
+    terminating: bool
+    created: datetime | None = None
+
+
+@dataclass(frozen=True)
+class PodView:
+    """What an attempt's pods say beyond the Job's conditions."""
+
+    stuck: str | None = None
+    """A container that cannot start (its image cannot be pulled, say), and why."""
+    policy_ended: str | None = None
+    """How the policy container last ended, when it did not exit cleanly (OOMKilled, a code)."""
+    evaluating: bool = False
+    """Whether an evaluator container has started in some pod."""
+    started: int = 0
+    """In how many pods the evaluator container has started (an Indexed Job has one per
+    shard: one shard left unscheduled holds the whole result)."""
+    disrupted: str | None = None
+    """How the cluster evicted, preempted or lost a pod of the Job (a DisruptionTarget
+    condition, or a pod failed with a reason of the kubelet's such as Evicted or NodeLost)."""
+    unschedulable: str | None = None
+    """Why the scheduler cannot place a pending pod (PodScheduled=False, Unschedulable)."""
+    alive: frozenset[str] = frozenset()
+    """The pods not yet ended (neither Succeeded nor Failed), by name."""
+    names: frozenset[str] = frozenset()
+    """Every pod of the Job listed, ended or not."""
+
+    @property
+    def count(self) -> int:
+        """How many pods the Job has at all."""
+        return len(self.names)
+
+
+def job_status(job: V1Job) -> JobStatus:
+    """A Job's phase from its conditions (Complete, Failed) and its ready pods."""
+    status = job.status
+    true = {c.type: c for c in (status.conditions or []) if c.status == "True"} if status else {}
+    if "Complete" in true:
+        return JobStatus("succeeded")
+    failed = true.get("Failed")
+    if failed is not None:
+        reason = f"{failed.reason or 'Failed'}: {failed.message or ''}".rstrip(": ")
+        phase: Phase = "deadline_exceeded" if failed.reason == "DeadlineExceeded" else "failed"
+        return JobStatus(phase, reason)
+    if status is not None and (status.ready or 0) > 0:
+        return JobStatus("running")
+    return JobStatus("pending")
+
+
+def job_ref(job: V1Job) -> JobRef | None:
+    """A listed Job's attempt and status; None for a Job without our labels."""
+    meta = job.metadata
+    labels = (meta.labels if meta else None) or {}
+    submission, attempt = labels.get(SUBMISSION_LABEL, ""), labels.get(ATTEMPT_LABEL, "")
+    if meta is None or not meta.name or not submission.isdigit() or not attempt.isdigit():
+        return None  # not one we made: never touch it
+    return JobRef(
+        name=meta.name,
+        submission_id=int(submission),
+        attempt=int(attempt),
+        status=job_status(job),
+        terminating=meta.deletion_timestamp is not None,
+        created=meta.creation_timestamp,
+    )
+
+
+def pods_by_index(pods: Iterable[V1Pod]) -> dict[int, V1Pod]:
+    """The pod whose log stands for each shard index."""
+    chosen: dict[int, V1Pod] = {}
+    for pod in pods:
+        index = _pod_index(pod)
+        if index not in chosen or _preference(pod) > _preference(chosen[index]):
+            chosen[index] = pod
+    return chosen
+
+
+def pod_view(pods: list[V1Pod]) -> PodView:
+    """What an attempt's pods say: a container that cannot start, how the policy ended."""
+    view = PodView(names=frozenset((p.metadata.name or "") for p in pods if p.metadata))
+    for pod in pods:
+        status = pod.status
+        if status is None:
+            continue
+        name = pod.metadata.name if pod.metadata and pod.metadata.name else ""
+        if status.phase not in ("Succeeded", "Failed"):
+            view = replace(view, alive=view.alive | {name})
+        if view.disrupted is None:
+            view = replace(view, disrupted=_disruption(name, status))
+        if view.unschedulable is None:
+            view = replace(view, unschedulable=_unschedulable(status))
+        before = view.evaluating
+        view = replace(view, evaluating=False)
+        for container in [
+            *(status.init_container_statuses or []),
+            *(status.container_statuses or []),
+        ]:
+            view = _look(view, container)
+        started = view.evaluating
+        view = replace(view, evaluating=before or started, started=view.started + started)
+    return view
+
+
+def warnings(events: Iterable[Any]) -> list[str]:
+    """The Warning events among `events`, oldest first, as `Reason: message`."""
+    found = [e for e in events if e.type == "Warning"]
+    found.sort(key=_event_time)
+    return [f"{e.reason or 'Warning'}: {e.message or ''}".rstrip(": ") for e in found]
+
+
+def _pod_index(pod: V1Pod) -> int:
+    meta = pod.metadata
+    value = ((meta.labels or {}).get(INDEX_LABEL) if meta else None) or (
+        (meta.annotations or {}).get(INDEX_LABEL) if meta else None
+    )
+    return int(value) if value is not None and value.isdigit() else 0
+
+
+def _preference(pod: V1Pod) -> tuple[bool, float]:
+    """A succeeded pod's log first, else the newest pod's (a disrupted one was replaced)."""
+    phase = pod.status.phase if pod.status else None
+    created = pod.metadata.creation_timestamp if pod.metadata else None
+    return (phase == "Succeeded", created.timestamp() if created else 0.0)
+
+
+STUCK_REASONS = frozenset(
+    {
+        "ImagePullBackOff",
+        "InvalidImageName",
+        "ErrImageNeverPull",
+        "CreateContainerConfigError",
+        "CreateContainerError",
+    }
+)
+"""Waiting reasons that do not resolve by waiting (ErrImagePull turns into ImagePullBackOff)."""
+
+
+def _look(view: PodView, container: Any) -> PodView:
+    state, last = container.state, container.last_state
+    waiting = state.waiting if state is not None else None
+    if view.stuck is None and waiting is not None and waiting.reason in STUCK_REASONS:
+        detail = f": {waiting.message}" if waiting.message else ""
+        view = replace(view, stuck=f"the {container.name} container: {waiting.reason}{detail}")
+    if container.name == EVALUATOR and state is not None and (state.running or state.terminated):
+        view = replace(view, evaluating=True)
+    if container.name == POLICY and view.policy_ended is None:
+        for ended in (
+            state.terminated if state is not None else None,
+            last.terminated if last is not None else None,
+        ):
+            if ended is not None and (ended.reason == "OOMKilled" or ended.exit_code):
+                view = replace(view, policy_ended=_ending(ended))
+                break
+    return view
+
+
+DISRUPTING_REASONS = frozenset(
+    {"Evicted", "NodeLost", "Preempting", "Shutdown", "Terminated", "NodeShutdown"}
+)
+"""Reasons a pod fails for that are the node's or the cluster's doing, never the evaluation's."""
+
+
+def _disruption(name: str, status: Any) -> str | None:
+    for condition in status.conditions or []:
+        if condition.type == "DisruptionTarget" and condition.status == "True":
+            why = condition.reason or "DisruptionTarget"
+            detail = f": {condition.message}" if condition.message else ""
+            return f"pod {name} was disrupted by the cluster ({why}{detail})"
+    if status.phase == "Failed" and status.reason in DISRUPTING_REASONS:
+        detail = f": {status.message}" if status.message else ""
+        return f"pod {name} failed on its node ({status.reason}{detail})"
+    return None
+
+
+def _unschedulable(status: Any) -> str | None:
+    if status.phase != "Pending":
+        return None
+    for condition in status.conditions or []:
+        if (
+            condition.type == "PodScheduled"
+            and condition.status == "False"
+            and condition.reason == "Unschedulable"
+        ):
+            return condition.message or "Unschedulable"
+    return None
+
+
+def _event_time(event: Any) -> float:
+    for value in (event.last_timestamp, event.event_time, event.first_timestamp):
+        if value is not None:
+            return float(value.timestamp())
+    return 0.0
+
+
+def _ending(terminated: Any) -> str:
+    if terminated.reason == "OOMKilled":
+        return "the policy container was killed for exceeding its memory limit (OOMKilled)"
+    return f"the policy container exited with code {terminated.exit_code}"
