@@ -408,13 +408,8 @@ def test_the_reconciler_deletes_jobs_of_attempts_no_longer_active(
     assert "disappeared" in run.submission(queued.id).reason
 
 
-def test_a_suite_that_asks_for_shards_gets_an_indexed_job(
-    committed_sessions: sessionmaker[Session],
-    api: ServerAPI,
-    wsettings: WorkerSettings,
-    apiserver: ApiServerDouble,
-    tmp_path: Path,
-) -> None:
+def queue_sharded(committed_sessions: sessionmaker[Session], tmp_path: Path) -> int:
+    """A queued submission to a challenge whose suite asks for 3 shards."""
     sharded = tmp_path / "sharded.yaml"
     sharded.write_text(SUITE.read_text().replace("name: server-tiny", "name: sharded\nshards: 3"))
     with committed_sessions() as db:
@@ -422,6 +417,17 @@ def test_a_suite_that_asks_for_shards_gets_an_indexed_job(
         challenge = load_challenge(db, sharded, options, seed_secret="s" * 32)
         sid = queue_submission(db, make_user(db, "bob"), challenge).id
         db.commit()
+    return sid
+
+
+def test_a_suite_that_asks_for_shards_gets_an_indexed_job(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    tmp_path: Path,
+) -> None:
+    sid = queue_sharded(committed_sessions, tmp_path)
     run = start(api, wsettings, committed_sessions, apiserver, sid)
     spec = apiserver.jobs[(NAMESPACE, job_name(sid, 1))]["spec"]
     assert (spec["completionMode"], spec["completions"], spec["parallelism"]) == ("Indexed", 3, 3)
@@ -719,13 +725,7 @@ def test_one_shard_left_unschedulable_ends_the_attempt_after_the_pending_timeout
     apiserver: ApiServerDouble,
     tmp_path: Path,
 ) -> None:
-    sharded = tmp_path / "sharded.yaml"
-    sharded.write_text(SUITE.read_text().replace("name: server-tiny", "name: sharded\nshards: 3"))
-    with committed_sessions() as db:
-        options = ChallengeOptions(quota_concurrent=10, quota_per_day=10)
-        challenge = load_challenge(db, sharded, options, seed_secret="s" * 32)
-        sid = queue_submission(db, make_user(db, "bob"), challenge).id
-        db.commit()
+    sid = queue_sharded(committed_sessions, tmp_path)
 
     def two_of_three_scheduled(namespace: str, name: str) -> None:
         pods = apiserver.run(namespace, name)  # all three start...
