@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import enum
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from evaluator.plan import EvaluationPlan
 from evaluator.results import EvaluationResult
@@ -41,6 +41,14 @@ FINAL_STATES = frozenset(
     {State.SUCCEEDED, State.FAILED, State.ERROR, State.CANCELLED, State.TIMED_OUT}
 )
 ACTIVE_STATES = frozenset({State.QUEUED, State.LAUNCHING, State.RUNNING})
+
+
+class ErrorCause(enum.StrEnum):
+    """Who caused an `error` a worker reports, where the server acts on it."""
+
+    CLUSTER = "cluster"
+    """The cluster stopped the evaluation (evicted, preempted, unschedulable, refused by a
+    quota, a node lost): no quota used, and the submission runs again once."""
 
 
 class _Body(BaseModel):
@@ -84,6 +92,8 @@ class FinalReport(_Body):
     reason: str = Field(min_length=1, max_length=REASON_LIMIT)
     result: EvaluationResult | None = None
     log_tail: str = Field(default="", max_length=LOG_TAIL_LIMIT)
+    cause: ErrorCause | None = None
+    """Set only with `error`: who caused it, when not the evaluation itself."""
 
     @field_validator("state")
     @classmethod
@@ -91,6 +101,12 @@ class FinalReport(_Body):
         if not state.final:
             raise ValueError(f"{state.value} is not a final state")
         return state
+
+    @model_validator(mode="after")
+    def _cause_only_with_error(self) -> FinalReport:
+        if self.cause is not None and self.state != State.ERROR:
+            raise ValueError(f"a cause goes only with error, not {self.state.value}")
+        return self
 
 
 class ReportOut(BaseModel):

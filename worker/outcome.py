@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from evaluator.results import EvaluationResult
-from internal_api.schemas import REASON_LIMIT, FinalReport, State
+from internal_api.schemas import REASON_LIMIT, ErrorCause, FinalReport, State
 
 
 def conclusion(
@@ -22,7 +22,12 @@ def conclusion(
 
 
 def ended(
-    state: State, reason: str, *, result: EvaluationResult | None = None, log_tail: str = ""
+    state: State,
+    reason: str,
+    *,
+    result: EvaluationResult | None = None,
+    log_tail: str = "",
+    cause: ErrorCause | None = None,
 ) -> FinalReport:
     """A final report, with the reason and the log tail cut to what the server keeps."""
     from internal_api.schemas import LOG_TAIL_LIMIT
@@ -32,4 +37,5 @@ def ended(
         reason=reason[:REASON_LIMIT],
         result=result,
         log_tail=log_tail[-LOG_TAIL_LIMIT:],
+        cause=cause,
     )

@@ -34,6 +34,8 @@ class Cause(enum.StrEnum):
 
     WORKER_LOST = "worker_lost"
     WORKER_RESTARTED = "worker_restarted"
+    CLUSTER = "cluster"
+    """The Kubernetes cluster stopped it (evicted, preempted, unschedulable, quota, node lost)."""
 
 
 # What counts against a quota: work the participant caused. Our errors and cancels do not.

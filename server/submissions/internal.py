@@ -114,7 +114,9 @@ def post_progress(submission_id: Id, attempt: Id, body: ProgressReport, db: DBDe
 
 
 @router.post(f"{ATTEMPT}/final")
-def post_final(submission_id: Id, attempt: Id, body: FinalReport, db: DBDep) -> ReportOut:
+def post_final(
+    submission_id: Id, attempt: Id, body: FinalReport, request: Request, db: DBDep
+) -> ReportOut:
     applied = report_final(
         db,
         submission_id,
@@ -123,8 +125,11 @@ def post_final(submission_id: Id, attempt: Id, body: FinalReport, db: DBDep) -> 
         body.reason,
         result=body.result,
         log_tail=body.log_tail,
+        cause=body.cause,
     )
     db.commit()
+    if body.cause is not None:  # it may run again: send it after the commit
+        services(request).dispatcher.dispatch()
     return _out(db, submission_id, applied)
 
 

@@ -29,10 +29,12 @@ from server.submissions.states import new_attempt, transition
 
 log = logging.getLogger(__name__)
 
-LOST_CAUSES = frozenset({Cause.WORKER_LOST, Cause.WORKER_RESTARTED})
+LOST_CAUSES = frozenset({Cause.WORKER_LOST, Cause.WORKER_RESTARTED, Cause.CLUSTER})
+"""Causes that are ours, not the policy's: the attempt runs again, once per submission."""
 _WHAT = {
     Cause.WORKER_LOST: "the worker evaluating it stopped responding",
     Cause.WORKER_RESTARTED: "the worker evaluating it restarted",
+    Cause.CLUSTER: "the cluster stopped the evaluation",
 }
 
 
@@ -127,11 +129,19 @@ def _time_out(db: Session, now: datetime, out: ReconcileOut) -> None:
 
 
 def end_lost(
-    db: Session, s: Submission, *, cause: Cause, now: datetime | None = None
+    db: Session,
+    s: Submission,
+    *,
+    cause: Cause,
+    detail: str | None = None,
+    now: datetime | None = None,
+    **values: object,
 ) -> bool | None:
-    """End an attempt that died with its worker: `error` (ours, no quota) and, the first time
-    this submission loses one, queued again as a new attempt. True: queued again; False: left
-    `error`; None: it had already moved on."""
+    """End an attempt that died through no fault of the policy's (its worker lost or restarted,
+    the cluster stopped it): `error` (ours, no quota) and, the first time this submission loses
+    one, queued again as a new attempt. `detail` says what happened instead of the cause's
+    stock phrase; `values` are stored with the ended attempt (its log tail). True: queued
+    again; False: left `error`; None: it had already moved on."""
     now = now or utcnow()
     earlier = db.scalar(
         select(func.count())
@@ -139,13 +149,19 @@ def end_lost(
         .where(Transition.submission_id == s.id, Transition.cause.in_(LOST_CAUSES))
     )
     again = not earlier  # our fault once: run it again; twice: stop and say so
-    what = _WHAT[cause]
-    reason = f"{what}; queued again" if again else f"{what} again; ask an admin"
-    if not transition(db, s.id, s.attempt, State.ERROR, reason, now=now, cause=cause):
+    what = detail or _WHAT[cause]
+    reason = (
+        f"{what}; queued again" if again else f"{what}; lost before, so not again: ask an admin"
+    )
+    if not transition(db, s.id, s.attempt, State.ERROR, reason, now=now, cause=cause, **values):
         return None
     db.refresh(s)
     if again:
         return new_attempt(
-            db, s, f"{what}: running it again", from_states=frozenset({State.ERROR}), now=now
+            db,
+            s,
+            f"{_WHAT[cause]}: running it again",
+            from_states=frozenset({State.ERROR}),
+            now=now,
         )
     return False

@@ -14,15 +14,18 @@ from sqlalchemy import delete, update
 from sqlalchemy.orm import Session as DB
 
 from evaluator.results import EvaluationResult
+from internal_api.schemas import ErrorCause
 from server.kit.errors import Conflict, Invalid, NotFound
 from server.leaderboard.service import refresh
 from server.models import (
+    Cause,
     EpisodeResultRow,
     State,
     Submission,
     TaskResultRow,
     utcnow,
 )
+from server.submissions.reconcile import end_lost
 from server.submissions.states import transition
 
 LOG_TAIL_LIMIT = 64 * 1024
@@ -98,8 +101,10 @@ def report_final(
     *,
     result: EvaluationResult | None = None,
     log_tail: str = "",
+    cause: ErrorCause | None = None,
 ) -> bool:
-    """End an attempt. True when this call (or an identical earlier one) ended it so."""
+    """End an attempt. True when this call (or an identical earlier one) ended it so. An
+    `error` the cluster caused is ours: no quota, and the submission runs again once."""
     if not state.final:
         raise Invalid(f"{state.value} is not a final state")
     if state == State.SUCCEEDED and result is None:
@@ -109,6 +114,12 @@ def report_final(
         # Idempotent repeat of the same report; any other final state already won.
         return submission.state == state
     values: dict[str, Any] = {"log_tail": log_tail[-LOG_TAIL_LIMIT:]}
+    if cause is not None:
+        if state != State.ERROR:
+            raise Invalid(f"a cause goes only with error, not {state.value}")
+        return (
+            end_lost(db, submission, cause=Cause(cause.value), detail=reason, **values) is not None
+        )
     if result is not None:
         _store_results(db, submission, result)
         values["result"] = result.model_dump(mode="json")

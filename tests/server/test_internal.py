@@ -262,6 +262,45 @@ def test_a_final_state_must_be_final(http: TestClient, settings: Settings) -> No
     assert r.status_code == 422
 
 
+def test_an_error_the_cluster_caused_runs_again_once_and_is_sent_to_a_worker(
+    committed_sessions: sessionmaker[Session],
+    http: TestClient,
+    settings: Settings,
+    api: ServerAPI,
+    work: RecordingQueue,
+) -> None:
+    (sid,) = queue(committed_sessions, {"alice": 1})
+    evicted = "the cluster stopped the evaluation: pod eval-1-1-0 was evicted"
+    for attempt in (1, 2):
+        handed = api.claim("w1")
+        assert handed is not None
+        assert handed.attempt == attempt
+        api.running(sid, attempt, reason="evaluating", deadline_s=600)
+        report = FinalReport(state=State.ERROR, reason=evicted, cause="cluster")
+        state = api.final(sid, attempt, report)
+        assert state == (State.QUEUED if attempt == 1 else State.ERROR)
+    assert work.sent[-1] == (sid, 2)  # the re-run was sent after the commit
+    s = loaded(committed_sessions, sid)
+    assert (s.state, s.attempt) == (State.ERROR, 2)  # twice is not chance: stop and say so
+    assert s.reason == f"{evicted}; lost before, so not again: ask an admin"
+    with committed_sessions() as db:
+        ends = db.execute(
+            select(Transition.attempt, Transition.reason, Transition.cause)
+            .where(Transition.submission_id == sid, Transition.to_state == State.ERROR)
+            .order_by(Transition.attempt)
+        ).all()
+    assert [tuple(e) for e in ends] == [
+        (1, f"{evicted}; queued again", Cause.CLUSTER),
+        (2, s.reason, Cause.CLUSTER),
+    ]
+    r = http.post(
+        ATTEMPT.format(sid=sid, attempt=2) + "/final",
+        json={"state": "failed", "reason": "x", "cause": "cluster"},
+        headers=worker_auth(settings),
+    )
+    assert r.status_code == 422  # a cause goes with `error` only
+
+
 def test_a_report_about_a_stale_attempt_is_refused(
     committed_sessions: sessionmaker[Session],
     http: TestClient,

@@ -2,7 +2,8 @@
 
 No API server can run on this machine, so the official client talks over HTTP to this one:
 batch/v1 Jobs (create, read, list by label with pagination, delete with a propagation policy),
-core/v1 pods (list by label, read a container's log) and events (list by involved object).
+core/v1 pods (list by label, read a container's log), events (list by involved object) and
+ResourceQuotas (listed with what they use, as the quota controller reports it).
 Created Jobs are checked against the official schema, strictly, as the real server's validation
 would refuse them. Tests play the
 Job controller and the kubelet (`run`, `succeed`, `fail`, `exceed_deadline`), queue faults for
@@ -54,6 +55,8 @@ _JOBS = re.compile(r"^/apis/batch/v1/namespaces/([^/]+)/jobs(?:/([^/]+))?$")
 _PODS = re.compile(r"^/api/v1/namespaces/([^/]+)/pods(?:/([^/]+)/log)?$")
 _EVENTS = re.compile(r"^/api/v1/namespaces/([^/]+)/events$")
 _SECRETS = re.compile(r"^/api/v1/namespaces/([^/]+)/secrets$")
+_QUOTAS = re.compile(r"^/api/v1/namespaces/([^/]+)/resourcequotas$")
+_TERMINAL = ("Succeeded", "Failed")
 _EPOCH = datetime(2026, 1, 1, tzinfo=UTC)
 
 
@@ -137,6 +140,8 @@ class ApiServerDouble:
     """A ResourceQuota's `count/jobs.batch`: creating a Job beyond it answers 403."""
     pod_quota: int | None = None
     """A ResourceQuota's `pods`: the controller's pod creations beyond it are refused."""
+    quotas_readable: bool = True
+    """False: listing ResourceQuotas is forbidden (403), as with a Role that does not grant it."""
     on_create: Callable[[str, str], object] | None = None
     """Plays the Job controller the moment a Job is created (namespace, name)."""
     expire_continue: bool = False
@@ -194,9 +199,7 @@ class ApiServerDouble:
             job = self.jobs[(namespace, name)]
             pods = []
             for index in _indexes(job):
-                if self.pod_quota is not None and len(self._in(self.pods, namespace)) >= (
-                    self.pod_quota
-                ):
+                if self.pod_quota is not None and self._live_pods(namespace) >= self.pod_quota:
                     self._quota_refused_pod(job)
                     continue
                 pods.append(self._add_pod(job, index, ready=ready))
@@ -428,6 +431,16 @@ class ApiServerDouble:
                 )
             if name is not None and method == "DELETE":
                 return self._delete_job(namespace, name, query, body)
+        if (match := _QUOTAS.match(path)) and method == "GET" and not self.quotas_readable:
+            return _status(403, "Forbidden", "resourcequotas is forbidden: cannot list")
+        if (match := _QUOTAS.match(path)) and method == "GET":
+            items = self._quotas(match.group(1))
+            return 200, {
+                "kind": "ResourceQuotaList",
+                "apiVersion": "v1",
+                "metadata": {},
+                "items": items,
+            }
         if (match := _SECRETS.match(path)) and method == "POST":
             return self._post_secret(match.group(1), body)
         if (match := _EVENTS.match(path)) and method == "GET":
@@ -493,7 +506,7 @@ class ApiServerDouble:
 
     def _quota_refused_pod(self, job: Json) -> None:
         meta = job["metadata"]
-        used = len(self._in(self.pods, meta["namespace"]))
+        used = self._live_pods(meta["namespace"])
         message = (
             f'Error creating: pods "{meta["name"]}-{uuid.uuid4().hex[:5]}" is forbidden: '
             f"exceeded quota: eval-quota, requested: pods=1, used: pods={used}, "
@@ -600,6 +613,33 @@ class ApiServerDouble:
         return {"kind": kind, "apiVersion": api_version, "metadata": meta, "items": page}
 
     # Helpers.
+
+    def _live_pods(self, namespace: str) -> int:
+        """Pods a quota counts: those not yet Succeeded or Failed."""
+        pods = self._in(self.pods, namespace)
+        return sum(1 for p in pods if (p.get("status") or {}).get("phase") not in _TERMINAL)
+
+    def _quotas(self, namespace: str) -> list[Json]:
+        """`eval-quota` as the quota controller reports it, when the test set one."""
+        hard: Json = {}
+        used: Json = {}
+        if self.pod_quota is not None:
+            hard["pods"], used["pods"] = str(self.pod_quota), str(self._live_pods(namespace))
+        if self.job_quota is not None:
+            hard["count/jobs.batch"] = str(self.job_quota)
+            used["count/jobs.batch"] = str(len(self._in(self.jobs, namespace)))
+        if not hard:
+            return []
+        meta = {"name": "eval-quota", "namespace": namespace}
+        return [
+            {
+                "kind": "ResourceQuota",
+                "apiVersion": "v1",
+                "metadata": meta,
+                "spec": {"hard": dict(hard)},
+                "status": {"hard": hard, "used": used},
+            }
+        ]
 
     def _take_fault(self, method: str, path: str) -> Fault | None:
         for i, fault in enumerate(self.faults):

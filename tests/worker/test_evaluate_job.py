@@ -5,9 +5,11 @@ from __future__ import annotations
 import io
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -335,3 +337,31 @@ def test_shards_run_in_separate_pods_merge_into_the_same_episodes(volume: Path):
     local = evaluate(plan, LocalDirectory(SCRIPTED))
     assert merged.status == "completed"
     assert episode_records(merged) == episode_records(local)
+
+
+def test_the_pod_entry_point_stops_at_once_on_sigterm(volume: Path):
+    """A deleted pod (a cancel, an eviction) gets SIGTERM: the evaluator stops then, not at the
+    kubelet's SIGKILL (as a container's PID 1, Python would ignore SIGTERM by default)."""
+    endpoint_dir = volume / "endpoint"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MANIEVAL_")}
+    env |= {
+        "MANIEVAL_JOB_SPEC": tiny_evaluation().canonical_json(),
+        "MANIEVAL_SHARDS": "1",
+        "MANIEVAL_ENDPOINT_DIR": str(endpoint_dir),
+    }
+    job = subprocess.Popen(
+        [sys.executable, "-m", "evaluator.job"], cwd=REPO, env=env, stderr=subprocess.PIPE
+    )
+    try:
+        deadline = time.monotonic() + 300  # it listens for the policy, which never comes
+        while not (endpoint_dir / "policy.sock").exists():
+            assert job.poll() is None, job.stderr.read() if job.stderr else ""
+            assert time.monotonic() < deadline, "the evaluator never listened"
+            time.sleep(0.05)
+        job.send_signal(signal.SIGTERM)
+        assert job.wait(timeout=60) == 128 + signal.SIGTERM  # its handler's exit, not the default
+        assert job.stderr is not None
+        assert b"manieval evaluate-job: stopped (SIGTERM)" in job.stderr.read()
+    finally:
+        job.kill()
+        job.wait()

@@ -21,7 +21,7 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
-from sqlalchemy import update
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session, joinedload, sessionmaker
 
 from evaluator.evaluation import build_result, evaluate
@@ -33,7 +33,7 @@ from evaluator.sources import LocalDirectory
 from internal_api.schemas import State
 from server.challenges.service import ChallengeOptions, load_challenge, suite_of
 from server.kit.settings import Settings
-from server.models import Submission, utcnow
+from server.models import Cause, Submission, Transition, utcnow
 from server.submissions.service import cancel
 from tests.evaluator.conftest import REPO, SCRIPTED, episode_records
 from tests.factories import SUITE, make_challenge, make_user, queue_submission
@@ -111,6 +111,30 @@ def submission_of(sessions: sessionmaker[Session], sid: int) -> Submission:
         submission = db.get(Submission, sid)
         assert submission is not None
         return submission
+
+
+def attempt_end(sessions: sessionmaker[Session], sid: int, attempt: int = 1) -> Transition:
+    """How the attempt ended: its transition to a final state (kept when it runs again)."""
+    with sessions() as db:
+        ends = [
+            t
+            for t in db.scalars(select(Transition).where(Transition.submission_id == sid))
+            if t.attempt == attempt and t.to_state.final
+        ]
+        assert len(ends) == 1, ends
+        return ends[0]
+
+
+def assert_cluster_error(sessions: sessionmaker[Session], sid: int, state: State | None) -> str:
+    """The cluster's doing: attempt 1 ended `error` with the cluster's cause, and the
+    submission runs again as attempt 2 (no quota used). Returns attempt 1's reason."""
+    assert state == State.QUEUED
+    end = attempt_end(sessions, sid)
+    assert (end.to_state, end.cause) == (State.ERROR, Cause.CLUSTER)
+    assert end.reason.endswith("; queued again"), end.reason
+    submission = submission_of(sessions, sid)
+    assert (submission.state, submission.attempt) == (State.QUEUED, 2)
+    return end.reason
 
 
 def until(check: Callable[[], object], what: str, timeout: float = 30.0) -> None:
@@ -323,7 +347,7 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
         ),
         (
             lambda api, name: api.jobs.pop((NAMESPACE, name)),
-            State.ERROR,
+            State.QUEUED,  # the cluster's doing: it runs again
             "the evaluation's Job eval-",
         ),
         (
@@ -354,7 +378,7 @@ def test_every_way_a_job_ends_gives_a_final_state_with_a_reason(
     apiserver.run(NAMESPACE, name, ready=False)
     arrange(apiserver, name)
     assert run.wait() == state
-    assert run.submission(queued.id).reason.startswith(reason)
+    assert attempt_end(committed_sessions, queued.id).reason.startswith(reason)
 
 
 def test_cancel_during_a_run_deletes_the_job_and_its_pods(
@@ -404,8 +428,8 @@ def test_the_reconciler_deletes_jobs_of_attempts_no_longer_active(
     (clean,) = runtime_cleaners(wsettings)
     assert clean({(queued.id, 1)}) == []  # active: kept
     assert clean(set()) == [name]  # e.g. its worker died and the attempt was ended
-    assert run.wait() == State.ERROR  # the worker watching it sees it gone, and says so
-    assert "disappeared" in run.submission(queued.id).reason
+    state = run.wait()  # the worker watching it sees it gone, and says so: not the policy's
+    assert "disappeared" in assert_cluster_error(committed_sessions, queued.id, state)
 
 
 def queue_sharded(committed_sessions: sessionmaker[Session], tmp_path: Path) -> int:
@@ -594,8 +618,7 @@ def test_an_eviction_that_makes_the_job_run_out_of_time_is_not_the_policys_fault
     apiserver.run(NAMESPACE, name)
     apiserver.disrupt(NAMESPACE, name)  # the replacement pod starts late...
     apiserver.exceed_deadline(NAMESPACE, name)  # ...and the Job's clock ran on
-    assert run.wait() == State.ERROR  # ours: it does not count against the quota
-    assert "evicted" in run.submission(queued.id).reason
+    assert "evicted" in assert_cluster_error(committed_sessions, queued.id, run.wait())
 
 
 def pod_looks(apiserver: ApiServerDouble) -> int:
@@ -619,11 +642,31 @@ def test_a_job_the_quota_refuses_ends_error_at_once_with_the_clusters_reason(
     queued: Submission,
 ) -> None:
     apiserver.job_quota = 0
-    assert Run(api, wsettings, committed_sessions).wait() == State.ERROR
-    reason = submission_of(committed_sessions, queued.id).reason
+    apiserver.quotas_readable = False  # so the worker cannot see it coming
+    reason = assert_cluster_error(
+        committed_sessions, queued.id, Run(api, wsettings, committed_sessions).wait()
+    )
     assert "cannot create the evaluation Job: 403" in reason
     assert "exceeded quota: eval-quota" in reason
     assert apiserver.jobs == {}
+
+
+def test_a_job_no_quota_could_ever_hold_ends_error_without_creating_it(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    apiserver.job_quota = 0
+    assert Run(api, wsettings, committed_sessions).wait() == State.ERROR  # ours, not again
+    end = attempt_end(committed_sessions, queued.id)
+    assert end.cause is None
+    assert end.reason == (
+        "cannot run on this cluster: quota eval-quota allows count/jobs.batch=0, "
+        "less than one evaluation Job needs (1)"
+    )
+    assert [r for r in apiserver.requests if r.method == "POST"] == []
 
 
 @pytest.mark.parametrize(
@@ -656,10 +699,11 @@ def test_pods_that_never_run_end_error_after_the_pending_timeout_not_the_deadlin
     expected: str,
 ) -> None:
     apiserver.pod_quota = pod_quota
+    apiserver.quotas_readable = False  # else the worker waits for room instead
     apiserver.on_create = lambda ns, name: controller(apiserver, ns, name)
     patient = k8s_worker(settings, apiserver, k8s_pending_timeout_s=0.5)
-    assert Run(api, patient, committed_sessions).wait() == State.ERROR
-    reason = submission_of(committed_sessions, queued.id).reason
+    state = Run(api, patient, committed_sessions).wait()
+    reason = assert_cluster_error(committed_sessions, queued.id, state)
     prefix = "the cluster stopped the evaluation: "
     assert reason.startswith(prefix + expected.split(" 1 s")[0]), reason
     assert expected.split(" 1 s")[-1] in reason
@@ -710,9 +754,8 @@ def test_a_pod_the_cluster_evicts_or_loses_ends_error_at_once_with_its_reason(
     run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     apiserver.run(NAMESPACE, name)
     looked_twice(apiserver)
-    disrupt(apiserver, name)
-    assert run.wait() == State.ERROR  # ours: no quota used, and long before the deadline
-    reason = run.submission(queued.id).reason
+    disrupt(apiserver, name)  # ours: no quota used, run again, long before the deadline
+    reason = assert_cluster_error(committed_sessions, queued.id, run.wait())
     assert reason.startswith("the cluster stopped the evaluation: pod eval-"), reason
     assert expected in reason
     assert apiserver.jobs == {}
@@ -744,10 +787,11 @@ def test_one_shard_left_unschedulable_ends_the_attempt_after_the_pending_timeout
 
     apiserver.on_create = two_of_three_scheduled
     patient = k8s_worker(settings, apiserver, k8s_pending_timeout_s=0.5)
-    assert Run(api, patient, committed_sessions).wait() == State.ERROR
-    reason = submission_of(committed_sessions, sid).reason
+    reason = assert_cluster_error(
+        committed_sessions, sid, Run(api, patient, committed_sessions).wait()
+    )
     assert reason.startswith("the cluster stopped the evaluation: its pod could not be scheduled")
-    assert reason.endswith("3 Insufficient cpu.")
+    assert reason.endswith("3 Insufficient cpu.; queued again")
 
 
 def test_a_resumed_watch_gives_the_job_its_secret_if_its_creator_died_before(
@@ -778,3 +822,113 @@ def test_a_resumed_watch_gives_the_job_its_secret_if_its_creator_died_before(
     apiserver.succeed(NAMESPACE, name, [printed(document)])
     watcher.join(timeout=60)
     assert outcome == [State.SUCCEEDED]
+
+
+def cancel_now(sessions: sessionmaker[Session], sid: int) -> None:
+    with sessions.begin() as db:
+        submission = db.get(Submission, sid, options=[joinedload(Submission.user)])
+        assert submission is not None
+        cancel(db, submission.user, submission)
+
+
+def states(sessions: sessionmaker[Session], sids: list[int]) -> list[State]:
+    return [submission_of(sessions, sid).state for sid in sids]
+
+
+def waiting_for_room(sessions: sessionmaker[Session], sid: int) -> bool:
+    submission = submission_of(sessions, sid)
+    phase = (submission.progress or {}).get("phase")
+    return submission.state == State.LAUNCHING and phase == "waiting for room in the cluster"
+
+
+def test_a_rollout_never_runs_more_jobs_than_the_quota_holds(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+) -> None:
+    """Draining and new workers side by side, more of them than the quota has pods for: the
+    extra claims wait for room instead of creating Jobs whose pods the quota would refuse."""
+    with committed_sessions() as db:
+        challenge = make_challenge(db, quota_concurrent=10, quota_per_day=10)
+        users = [make_user(db, f"user{i}") for i in range(4)]
+        sids = [queue_submission(db, user, challenge).id for user in users]
+        db.commit()
+    apiserver.pod_quota = 2
+    live: list[int] = []
+
+    def controller(namespace: str, name: str) -> None:
+        apiserver.run(namespace, name)
+        live.append(apiserver._live_pods(namespace))
+
+    apiserver.on_create = controller
+    draining = k8s_worker(settings, apiserver, worker_name="worker-old")
+    new = k8s_worker(settings, apiserver, worker_name="worker-new")
+    runs = []
+    for claimed, ws in enumerate((draining, new, draining, new), start=1):
+        runs.append(Run(api, ws, committed_sessions))  # one claim after another, as they come
+        until(
+            lambda n=claimed: states(committed_sessions, sids).count(State.QUEUED) == 4 - n,
+            "a claim",
+        )
+        until(lambda n=claimed: len(apiserver.jobs) == min(n, 2), "its Job, while there is room")
+    until(
+        lambda: sum(waiting_for_room(committed_sessions, sid) for sid in sids) == 2,
+        "the other two claims waiting for room",
+    )
+    names = {job_name(sid, 1): sid for sid in sids}
+    succeeded: set[str] = set()
+    deadline = time.monotonic() + 120
+    while len(succeeded) < len(sids):
+        assert time.monotonic() < deadline, f"only {sorted(succeeded)} ran"
+        with apiserver.lock:
+            created = [name for (_, name) in apiserver.jobs if name not in succeeded]
+        for name in created:
+            plan = plan_of(committed_sessions, settings, names[name])
+            document = build_result(plan, "image", [ShardOutcome()], started=STARTED)
+            apiserver.succeed(NAMESPACE, name, [printed(document)])
+            succeeded.add(name)
+        time.sleep(0.02)
+    assert [run.wait() for run in runs] == [State.SUCCEEDED] * 4
+    assert max(live) <= 2
+    assert [e for e in apiserver.events if e.get("reason") == "FailedCreate"] == []
+
+
+def test_a_cancel_while_waiting_for_room_creates_no_job(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    apiserver.pod_quota = 1
+    apiserver.pods[(NAMESPACE, "someone-else")] = {
+        "metadata": {"name": "someone-else", "namespace": NAMESPACE, "labels": {}},
+        "status": {"phase": "Running"},
+    }
+    run = Run(api, wsettings, committed_sessions)
+    until(lambda: waiting_for_room(committed_sessions, queued.id), "the claim waiting for room")
+    detail = submission_of(committed_sessions, queued.id).progress["detail"]
+    assert detail == "quota eval-quota: pods 1 used of 1, the Job needs 1"
+    cancel_now(committed_sessions, queued.id)
+    assert run.wait() == State.CANCELLED
+    assert [r for r in apiserver.requests if r.method == "POST"] == []
+
+
+def test_a_cancel_stops_the_job_between_looks(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    """Looks at the cluster are minutes apart here, yet the cancel deletes the Job at once:
+    between looks the watcher asks the server every second whether the attempt still runs."""
+    slow = k8s_worker(settings, apiserver, k8s_poll_interval=300)
+    name = job_name(queued.id, 1)
+    run = start(api, slow, committed_sessions, apiserver, queued.id)
+    apiserver.run(NAMESPACE, name)
+    cancel_now(committed_sessions, queued.id)
+    assert run.wait() == State.CANCELLED  # joined within 120 s: long before the next look
+    assert (name, "Foreground") in apiserver.deletions
+    assert not any(r.path.endswith("/pods") for r in apiserver.requests)  # no look was made

@@ -40,6 +40,7 @@ from worker.kubernetes.manifest import (
     job_labels,
     job_name,
 )
+from worker.kubernetes.quota import Quota, quota_of
 from worker.kubernetes.status import (
     JobRef,
     JobStatus,
@@ -139,6 +140,11 @@ class KubernetesExecutor:
             raise JobConflict(f"Job {spec.name} is being deleted; try again later", status=409)
         self._give_evaluation(spec, existing)  # the one who created it may have died first
         return StartedJob(spec.name, adopted=True)
+
+    def quotas(self) -> list[Quota]:
+        """The namespace's ResourceQuotas, with their limits and what is used."""
+        listed = self._call(self._core.list_namespaced_resource_quota, self.namespace)
+        return [quota_of(q) for q in listed.items]
 
     def give_evaluation(self, spec: JobSpec) -> None:
         """Make sure the attempt's existing Job has its Secret (a watch resumed after its

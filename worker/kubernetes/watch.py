@@ -1,15 +1,18 @@
 """Run one attempt as a Kubernetes Job and watch it to a final state.
 
-The worker builds the Job (`worker.kubernetes.manifest.build_job`), creates it (adopting it on
-409), then looks every `k8s_poll_interval` seconds: the Job's conditions decide the end, the
-pods say when an image cannot be pulled (no point waiting for the deadline) and when the
-cluster, not the policy, stopped the evaluation: a pod evicted, preempted or lost with its node
-(deleted or not) ends the attempt `error` at once, and pods unscheduled, pending or never
-created (a ResourceQuota refusing them) end it `error` after `k8s_pending_timeout_s`, each with
-the cluster's reason, never `timed_out` at the deadline. The evaluator's log gives the
-progress. Each look is also the attempt's heartbeat; when the server says the attempt is no
-longer running (cancelled, timed out by the reconciler) the Job is deleted. The result is read
-from the evaluator's log by this process: nothing in the pod can write one.
+The worker builds the Job (`worker.kubernetes.manifest.build_job`) and waits, beating, until
+the namespace's ResourceQuotas have room for all of it (`worker.kubernetes.quota`), so workers
+that outnumber the quota (a rollout) never create Jobs the quota would starve. It creates the
+Job (adopting it on 409), then looks every `k8s_poll_interval` seconds: the Job's conditions
+decide the end, the pods say when an image cannot be pulled (no point waiting for the deadline)
+and when the cluster, not the policy, stopped the evaluation: a pod evicted, preempted or lost
+with its node (deleted or not) ends the attempt at once, and pods unscheduled, pending or never
+created end it after `k8s_pending_timeout_s`, each as `error` with the cluster's reason and
+cause (the server then runs it again, once; no quota is used), never `timed_out` at the
+deadline. The evaluator's log gives the progress. Between looks the worker asks the server
+every second whether the attempt still runs: a cancel deletes the Job at once, and the
+evaluator, on SIGTERM, stops. The result is read from the evaluator's log by this process:
+nothing in the pod can write one.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from typing import Any
 from evaluator.job import JobOutputError, evaluation_job, result_from_logs
 from evaluator.plan import EvaluationPlan
 from evaluator.sources import LOG_TAIL_BYTES
-from internal_api.schemas import Assignment, FinalReport, State
+from internal_api.schemas import Assignment, ErrorCause, FinalReport, State
 from worker.kubernetes.client import (
     JobConflict,
     KubernetesError,
@@ -38,9 +41,11 @@ from worker.kubernetes.manifest import (
     JobSpec,
     Resources,
     active_deadline_for,
+    build_job,
     job_name,
     needs_gpu,
 )
+from worker.kubernetes.quota import demand, never_fits, shortfall
 from worker.kubernetes.status import JobStatus, PodView
 from worker.outcome import conclusion, ended
 from worker.server_api import ServerAPI, ServerUnavailable
@@ -52,6 +57,10 @@ DEADLINE_GRACE_S = 300.0  # beyond the Job's own deadline, before the reconciler
 API_OUTAGE_S = 600.0  # the API server unreachable this long: the attempt ends `error`
 POLICY_LOG_LINES = 400
 PROGRESS_EVERY = 3  # looks per read of the evaluator's log (each look is 2 API requests)
+CANCEL_CHECK_S = 1.0  # between looks, a heartbeat this often: a cancel stops the Job at once
+CLUSTER = ErrorCause.CLUSTER
+_ROOM = object()  # `_until_room`'s answer when the Job may be created
+_UNKNOWN = object()  # ... when the quotas could not be read: the API server decides at creation
 _EPISODE_LINE = re.compile(r"^manieval: run (\d+) episode \d+:", re.MULTILINE)
 
 
@@ -180,21 +189,59 @@ class _Watch:
         return self.spec.submission_id, self.spec.attempt
 
     def run(self) -> State | None:
+        room = self._until_room()
+        if room not in (_ROOM, _UNKNOWN):
+            return room  # type: ignore[return-value]
         deadline_s = self.spec.active_deadline_seconds + DEADLINE_GRACE_S
         reason = f"evaluating as Kubernetes Job {self.spec.name}"
         running = self.api.running(*self.ids, reason=reason, deadline_s=deadline_s)
         if running is None or not running.applied:
             return running.state if running is not None else None
-        try:
-            started = self.executor.start(self.spec)
-        except JobConflict as exc:  # not ours to delete: another deployment's, or being deleted
-            reason = f"cannot create the evaluation Job: {exc}"
-            return self._report(ended(State.ERROR, reason))
-        except KubernetesError as exc:
-            return self.end(State.ERROR, f"cannot create the evaluation Job: {exc}")
+        while True:
+            try:
+                started = self.executor.start(self.spec)
+                break
+            except JobConflict as exc:  # not ours to delete: another deployment's, or deleting
+                reason = f"cannot create the evaluation Job: {exc}"
+                return self._report(ended(State.ERROR, reason))
+            except KubernetesError as exc:
+                if exc.status == 403 and "exceeded quota" in str(exc) and room is _ROOM:
+                    # Another worker took the room between our look and our create.
+                    room = self._until_room()
+                    if room in (_ROOM, _UNKNOWN):
+                        continue
+                    return room  # type: ignore[return-value]
+                reason = f"cannot create the evaluation Job: {exc}"
+                return self.end(State.ERROR, reason, cause=CLUSTER)
         if started.adopted:
             log.info("adopted the existing Job %s", started.name)
         return self.follow()
+
+    def _until_room(self) -> object:
+        """Wait until the namespace's quotas have room for the whole Job, beating meanwhile:
+        `_ROOM`, `_UNKNOWN` (the quotas cannot be read), or the state the attempt ended in
+        (cancelled, or a quota it can never fit)."""
+        needs = demand(build_job(self.spec))
+        waiting = False
+        while True:
+            try:
+                quotas = self.executor.quotas()
+            except KubernetesError as exc:  # the quota still decides at creation
+                log.warning("Job %s: the quotas could not be read: %s", self.spec.name, exc)
+                return _UNKNOWN
+            never = never_fits(quotas, needs)
+            if never is not None:
+                return self.end(State.ERROR, f"cannot run on this cluster: {never}")
+            short = shortfall(quotas, needs)
+            if short is None:
+                return _ROOM
+            if not waiting:
+                log.info("Job %s waits for room: %s", self.spec.name, short)
+                waiting = True
+            if not self._beat({"phase": "waiting for room in the cluster", "detail": short}):
+                return self._cancelled()
+            if self.stop.wait(self.settings.k8s_poll_interval):
+                return None  # stopped: the claim is left to the reconciler
 
     def resume(self) -> State | None:
         """Follow a Job whose watcher was lost, giving it its Secret if that died with it."""
@@ -207,7 +254,14 @@ class _Watch:
     def follow(self) -> State | None:
         """Look at the Job until it ends (or the attempt ends elsewhere)."""
         outage_since: float | None = None
-        while not self.stop.wait(self.settings.k8s_poll_interval):
+        every = self.settings.k8s_poll_interval
+        next_look = time.monotonic() + every
+        while not self.stop.wait(min(CANCEL_CHECK_S, every)):
+            if time.monotonic() < next_look:
+                if not self._beat(None):  # only asks whether the attempt still runs
+                    return self._cancelled()
+                continue
+            next_look = time.monotonic() + every
             try:
                 status = self.executor.status(*self.ids)
                 if status.phase in ("pending", "running"):
@@ -235,7 +289,8 @@ class _Watch:
             return self.end(State.ERROR, f"the evaluation could not start: {view.stuck}")
         cluster = self._cluster_failure(view)
         if cluster is not None:
-            return self.end(State.ERROR, f"the cluster stopped the evaluation: {cluster}")
+            reason = f"the cluster stopped the evaluation: {cluster}"
+            return self.end(State.ERROR, reason, cause=CLUSTER)
         progress: dict[str, Any] = {"phase": status.phase, "done": 0}
         if view.evaluating:
             if self._looks % PROGRESS_EVERY == 0:  # the log is the costly read: not every look
@@ -293,9 +348,11 @@ class _Watch:
             progress |= {"task": run.env_id, "condition": run.condition.name}
         return progress
 
-    def _beat(self, progress: dict[str, Any]) -> bool:
-        """Report progress; False when the attempt ended elsewhere (its state is kept)."""
-        progress.setdefault("total", self.plan.episode_count())
+    def _beat(self, progress: dict[str, Any] | None) -> bool:
+        """Report progress (None: a heartbeat only); False when the attempt ended elsewhere
+        (its state is kept)."""
+        if progress is not None:
+            progress.setdefault("total", self.plan.episode_count())
         try:
             out = self.api.progress(*self.ids, progress)
         except ServerUnavailable as exc:  # the next look tries again; the Job runs on
@@ -313,10 +370,11 @@ class _Watch:
                 reason = (
                     f"the cluster evicted the evaluation and it then ran out of time: {disrupted}"
                 )
-                return self.end(State.ERROR, reason)
+                return self.end(State.ERROR, reason, cause=CLUSTER)
             return self.end(State.TIMED_OUT, "the evaluation exceeded its time budget")
         if status.phase == "missing":
-            return self.end(State.ERROR, f"the evaluation's Job {self.spec.name} disappeared")
+            reason = f"the evaluation's Job {self.spec.name} disappeared"
+            return self.end(State.ERROR, reason, cause=CLUSTER)
         return self.end(State.ERROR, f"the evaluator failed ({status.reason})")
 
     def _collect(self) -> State | None:
@@ -341,9 +399,9 @@ class _Watch:
         text = "\n".join(log.rstrip("\n") for log in logs if log)
         return view.policy_ended, text[-LOG_TAIL_BYTES:]
 
-    def end(self, state: State, reason: str) -> State | None:
+    def end(self, state: State, reason: str, *, cause: ErrorCause | None = None) -> State | None:
         log.info("Job %s: %s: %s", self.spec.name, state.value, reason)
-        final = self._report(ended(state, reason))
+        final = self._report(ended(state, reason, cause=cause))
         self._delete()
         return final
 
