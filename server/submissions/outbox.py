@@ -44,6 +44,9 @@ class Dispatcher:
             while True:
                 try:
                     n = self._dispatch_batch(batch)
+                except NotAttached:  # expected until `manieval serve` attaches its worker
+                    log.debug("no worker attached yet: work stays in the outbox")
+                    return sent
                 except Exception:
                     log.exception("dispatching queued work failed; the sweep will retry")
                     return sent
@@ -77,12 +80,16 @@ class CeleryQueue:
         self._app.send_task(RUN_NEXT, args=[submission_id, attempt])
 
 
+class NotAttached(RuntimeError):
+    """No worker is attached to this server yet."""
+
+
 class Unattached:
     """The embedded default before its worker is attached (`manieval serve` attaches it):
     work stays in the outbox until then."""
 
     def enqueue(self, submission_id: int, attempt: int) -> None:
-        raise RuntimeError("no worker is attached to this server yet")
+        raise NotAttached("no worker is attached to this server yet")
 
 
 @functools.cache

@@ -3,6 +3,7 @@ and who may see what."""
 
 from __future__ import annotations
 
+import logging
 import threading
 from datetime import UTC, datetime, timedelta
 
@@ -12,6 +13,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.models import Outbox, State, Submission, Transition
+from server.submissions.outbox import Unattached
 from server.submissions.reports import report_final, report_state
 from server.submissions.states import transition
 from tests.factories import RecordingQueue, make_challenge, make_user, result_doc, token_for
@@ -73,6 +75,24 @@ def test_unsent_work_is_sent_by_the_next_dispatch(
     assert dispatcher.dispatch() == 1
     assert work.sent == [(out["id"], 1)]
     assert dispatcher.dispatch() == 0
+
+
+def test_work_waits_quietly_in_the_outbox_until_a_worker_is_attached(
+    client: TestClient,
+    setup: dict[str, dict[str, str]],
+    work: RecordingQueue,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    dispatcher = client.app.state.services.dispatcher  # type: ignore[attr-defined]
+    dispatcher._work = Unattached()
+    with caplog.at_level(logging.INFO, logger="server.submissions.outbox"):
+        out = submit(client, setup["alice"])
+        assert dispatcher.dispatch() == 0
+    assert out["status"] == 202
+    assert [r for r in caplog.records if r.levelno >= logging.INFO] == []  # no trace per submit
+    dispatcher._work = work  # `manieval serve` attaches its worker
+    assert dispatcher.dispatch() == 1
+    assert work.sent == [(out["id"], 1)]
 
 
 @pytest.mark.parametrize(
