@@ -932,3 +932,51 @@ def test_a_cancel_stops_the_job_between_looks(
     assert run.wait() == State.CANCELLED  # joined within 120 s: long before the next look
     assert (name, "Foreground") in apiserver.deletions
     assert not any(r.path.endswith("/pods") for r in apiserver.requests)  # no look was made
+
+
+def test_a_job_whose_pods_the_quota_refuses_after_all_is_made_again_when_there_is_room(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    """Another worker took the room between this worker's look at the quota and its Job's
+    creation: rather than leave the Job's pods to the controller while its deadline runs, the
+    worker takes the Job back and makes it again once there is room."""
+    apiserver.pod_quota = 1
+    name = job_name(queued.id, 1)
+    created: list[str] = []
+    other = (NAMESPACE, "someone-elses-pod")
+
+    def controller(namespace: str, job: str) -> None:
+        created.append(job)
+        if len(created) == 1:  # the race: the room is gone by the time the pods are made
+            apiserver.pods[other] = {
+                "metadata": {"name": other[1], "namespace": namespace, "labels": {}},
+                "status": {"phase": "Running"},
+            }
+        apiserver.run(namespace, job)
+
+    apiserver.on_create = controller
+    run = Run(api, wsettings, committed_sessions)
+    until(
+        lambda: len(created) == 1 and (NAMESPACE, name) not in apiserver.jobs, "the Job taken back"
+    )
+    until(
+        lambda: (
+            (submission_of(committed_sessions, queued.id).progress or {}).get("phase")
+            == "waiting for room in the cluster"
+        ),
+        "the attempt waiting for room",
+    )
+    with apiserver.lock:
+        del apiserver.pods[other]  # the other evaluation ends
+    until(lambda: len(created) == 2 and apiserver.pods_of(NAMESPACE, name), "the Job made again")
+    plan = plan_of(committed_sessions, settings, queued.id)
+    document = build_result(plan, "image", [ShardOutcome()], started=STARTED)
+    apiserver.succeed(NAMESPACE, name, [printed(document)])
+    assert run.wait() == State.SUCCEEDED
+    submission = submission_of(committed_sessions, queued.id)
+    assert (submission.state, submission.attempt) == (State.SUCCEEDED, 1)  # not a re-run

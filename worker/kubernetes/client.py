@@ -58,6 +58,8 @@ class StartedJob:
     name: str
     adopted: bool
     """True when the Job already existed (a retried task): it is not created twice."""
+    uid: str = field(default="", compare=False)
+    """The Job's uid: the cluster's events about it name it (a Job made again has a new one)."""
 
 
 class KubernetesError(Exception):
@@ -129,7 +131,7 @@ class KubernetesExecutor:
                 raise
         else:
             self._give_evaluation(spec, created)
-            return StartedJob(spec.name, adopted=False)
+            return StartedJob(spec.name, adopted=False, uid=_uid(created))
         existing = self._call(self._batch.read_namespaced_job, spec.name, self.namespace)
         meta = existing.metadata
         labels = (meta.labels if meta else None) or {}
@@ -139,7 +141,7 @@ class KubernetesExecutor:
         if meta is not None and meta.deletion_timestamp is not None:
             raise JobConflict(f"Job {spec.name} is being deleted; try again later", status=409)
         self._give_evaluation(spec, existing)  # the one who created it may have died first
-        return StartedJob(spec.name, adopted=True)
+        return StartedJob(spec.name, adopted=True, uid=_uid(existing))
 
     def quotas(self) -> list[Quota]:
         """The namespace's ResourceQuotas, with their limits and what is used."""
@@ -200,11 +202,14 @@ class KubernetesExecutor:
         pods = self._call(self._core.list_namespaced_pod, self.namespace, label_selector=selector)
         return pod_view(pods.items)
 
-    def events(self, submission_id: int, attempt: int) -> list[str]:
+    def events(self, submission_id: int, attempt: int, *, uid: str = "") -> list[str]:
         """The cluster's warnings about the attempt's Job (a pod the quota refused, say),
-        oldest first, as `Reason: message`."""
+        oldest first, as `Reason: message`; with `uid`, only about that Job, not an earlier
+        one of the same name."""
         name = job_name(submission_id, attempt)
         selector = f"involvedObject.kind=Job,involvedObject.name={name}"
+        if uid:
+            selector += f",involvedObject.uid={uid}"
         listed = self._call(
             self._core.list_namespaced_event, self.namespace, field_selector=selector
         )
@@ -320,6 +325,10 @@ class KubernetesExecutor:
                 raise KubernetesError(f"the API server cannot be reached: {exc}") from None
             except ValueError as exc:  # an answer the client cannot read (bad JSON, a model)
                 raise KubernetesError(f"unreadable answer from the API server: {exc}") from None
+
+
+def _uid(job: V1Job) -> str:
+    return (job.metadata.uid if job.metadata is not None else None) or ""
 
 
 def no_client_retries(configuration: Any) -> Any:

@@ -183,6 +183,10 @@ class _Watch:
     _state: State | None = None
     _pending_since: float | None = None
     _seen: frozenset[str] = frozenset()
+    _uid: str = ""
+    """The uid of the Job this watch created (empty when it resumed someone else's watch)."""
+    _quotas_read: bool = False
+    """Whether the quotas could be read: only then can a refusal be waited out."""
 
     @property
     def ids(self) -> tuple[int, int]:
@@ -215,6 +219,7 @@ class _Watch:
                 return self.end(State.ERROR, reason, cause=CLUSTER)
         if started.adopted:
             log.info("adopted the existing Job %s", started.name)
+        self._uid, self._quotas_read = started.uid, room is _ROOM
         return self.follow()
 
     def _until_room(self) -> object:
@@ -285,6 +290,9 @@ class _Watch:
     def _look(self, status: JobStatus) -> State | None:
         """One look at a live Job: stuck pods end it, else report progress (the heartbeat)."""
         view = self.executor.pods(*self.ids)
+        taken = self._quotas_read and self._uid and view.count < self.spec.shards
+        if taken and self._room_taken():
+            return self._make_room()
         if view.stuck is not None:
             return self.end(State.ERROR, f"the evaluation could not start: {view.stuck}")
         cluster = self._cluster_failure(view)
@@ -330,6 +338,39 @@ class _Watch:
         if view.count == 0:
             return f"no pod was created in {waited:.0f} s{self._warnings()}"
         return f"its pod stayed pending for {waited:.0f} s{self._warnings()}"
+
+    def _room_taken(self) -> bool:
+        """Whether the quota refused this Job's pods: another worker took the room between
+        our look at the quotas and our Job's creation."""
+        try:
+            warnings = self.executor.events(*self.ids, uid=self._uid)
+        except KubernetesError as exc:
+            log.warning("Job %s: its events could not be read: %s", self.spec.name, exc)
+            return False
+        return any("exceeded quota" in w for w in warnings)
+
+    def _make_room(self) -> State | None:
+        """Take the Job back and make it again once the quotas have room, so that its pods
+        do not wait on the Job controller while its deadline runs. None: follow it again."""
+        log.info("Job %s: the quota refused its pods; waiting for room", self.spec.name)
+        self._delete()
+        progress = {"phase": "waiting for room in the cluster", "detail": "the quota is full"}
+        while self.executor.status(*self.ids).phase != "missing":  # its foreground deletion
+            if not self._beat(dict(progress)):
+                return self._cancelled()
+            if self.stop.wait(min(CANCEL_CHECK_S, self.settings.k8s_poll_interval)):
+                return None
+        room = self._until_room()
+        if room not in (_ROOM, _UNKNOWN):
+            return room  # type: ignore[return-value]
+        try:
+            started = self.executor.start(self.spec)
+        except KubernetesError as exc:
+            reason = f"cannot create the evaluation Job again: {exc}"
+            return self.end(State.ERROR, reason, cause=CLUSTER)
+        self._uid, self._seen, self._pending_since = started.uid, frozenset(), None
+        self._quotas_read = room is _ROOM
+        return None
 
     def _warnings(self) -> str:
         try:
