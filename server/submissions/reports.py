@@ -7,8 +7,9 @@ submission's current one is refused (`Conflict`), so a late worker cannot overwr
 
 from __future__ import annotations
 
+import re
 from datetime import timedelta
-from typing import Any
+from typing import Any, TypeVar
 
 from sqlalchemy import delete, update
 from sqlalchemy.orm import Session as DB
@@ -29,6 +30,21 @@ from server.submissions.reconcile import end_lost
 from server.submissions.states import transition
 
 LOG_TAIL_LIMIT = 64 * 1024
+_UNSTORABLE = re.compile("[\x00\ud800-\udfff]")
+T = TypeVar("T")
+
+
+def storable_data(value: T) -> T:
+    """Text from a worker (a policy's log, its reasons, a result) with what a database cannot
+    hold, NUL and lone surrogates, replaced by U+FFFD; the rest, control characters included,
+    is kept as the policy wrote it."""
+    if isinstance(value, str):
+        return _UNSTORABLE.sub("\ufffd", value)  # type: ignore[return-value]
+    if isinstance(value, dict):
+        return {storable_data(k): storable_data(v) for k, v in value.items()}  # type: ignore[return-value]
+    if isinstance(value, list):
+        return [storable_data(v) for v in value]  # type: ignore[return-value]
+    return value
 
 
 def _current(db: DB, submission_id: int, attempt: int) -> Submission:
@@ -47,6 +63,7 @@ def report_state(db: DB, submission_id: int, attempt: int, state: State, reason:
     """A non-final state change (launching, running). False when it no longer applies."""
     if state.final:
         raise Invalid("final states are reported with their results (report_final)")
+    reason = storable_data(reason)
     submission = _current(db, submission_id, attempt)
     if submission.state == state:
         return True
@@ -78,7 +95,7 @@ def report_progress(
     now = utcnow()
     values: dict[str, Any] = {"heartbeat_at": now, "updated_at": now}
     if progress is not None:
-        values["progress"] = progress
+        values["progress"] = storable_data(progress)
     result = db.execute(
         update(Submission)
         .where(
@@ -113,7 +130,10 @@ def report_final(
     if submission.state.final:
         # Idempotent repeat of the same report; any other final state already won.
         return submission.state == state
-    values: dict[str, Any] = {"log_tail": log_tail[-LOG_TAIL_LIMIT:]}
+    reason, log_tail = storable_data(reason), storable_data(log_tail[-LOG_TAIL_LIMIT:])
+    if result is not None:
+        result = EvaluationResult.model_validate(storable_data(result.model_dump(mode="json")))
+    values: dict[str, Any] = {"log_tail": log_tail}
     if cause is not None:
         if state != State.ERROR:
             raise Invalid(f"a cause goes only with error, not {state.value}")

@@ -18,6 +18,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, joinedload, sessionmaker
 
 from evaluator.plan import build_plan
+from evaluator.results import Abort
 from internal_api.schemas import (
     Assignment,
     AttemptRef,
@@ -299,6 +300,33 @@ def test_an_error_the_cluster_caused_runs_again_once_and_is_sent_to_a_worker(
         headers=worker_auth(settings),
     )
     assert r.status_code == 422  # a cause goes with `error` only
+
+
+def test_what_a_policy_writes_is_stored_even_with_characters_a_database_refuses(
+    committed_sessions: sessionmaker[Session], api: ServerAPI, http: TestClient, settings: Settings
+) -> None:
+    """A policy's log, its crash reason and progress may hold NUL, which Postgres cannot
+    store: it is kept with U+FFFD in its place, never a 500; other control characters (a
+    colour code) stay. A lone surrogate is not text at all: refused."""
+    (sid,) = queue(committed_sessions, {"alice": 1})
+    claimed_and_running(api, sid)
+    assert api.progress(sid, 1, {"done": 0, "total": 1, "task": "Pick\x00Cube"}).applied
+    abort = Abort(kind="policy_crashed", reason="died\x00 here", log_tail="out\x00put\x1b[0m")
+    result = result_doc([False]).model_copy(update={"status": "aborted", "abort": abort})
+    report = FinalReport(
+        state=State.FAILED, reason="died\x00 here", result=result, log_tail="out\x00put"
+    )
+    body = report.model_dump_json()
+    url = ATTEMPT.format(sid=sid, attempt=1) + "/final"
+    headers = worker_auth(settings) | {"content-type": "application/json"}
+    surrogate = body.replace("out\\u0000put", "out\\ud800put")
+    assert http.post(url, content=surrogate, headers=headers).status_code == 422  # not UTF-8
+    r = http.post(url, content=body, headers=headers)
+    assert (r.status_code, r.json()) == (200, {"applied": True, "state": "failed"})
+    s = loaded(committed_sessions, sid)
+    assert (s.reason, s.log_tail) == ("died\ufffd here", "out\ufffdput")
+    assert s.result is not None
+    assert s.result["abort"]["log_tail"] == "out\ufffdput\x1b[0m"
 
 
 def test_a_report_about_a_stale_attempt_is_refused(
