@@ -104,6 +104,9 @@ class Suite(_Strict):
 
     name: str = Field(pattern=r"^[a-z0-9][a-z0-9_\-]*$")
     version: int = Field(ge=1)
+    title: str = Field(default="", max_length=200)
+    """How people read the suite's name ("ManiSkill Core"); not part of what is evaluated, so
+    not in the hash."""
     description: str = ""
     tasks: tuple[TaskConfig, ...] = Field(min_length=1)
     phases: dict[str, Phase] = Field(min_length=1)
@@ -153,7 +156,7 @@ class Suite(_Strict):
 
     def sha256(self) -> str:
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
-        content = self.model_dump(mode="json", exclude={"shards"})
+        content = self.model_dump(mode="json", exclude={"shards", "title"})
         for name in _HASHED_WHEN_SET:  # suites that do not use a newer setting keep their hash
             if content[name] == type(self).model_fields[name].default:
                 del content[name]

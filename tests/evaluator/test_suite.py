@@ -67,6 +67,7 @@ def test_suite_hash_is_stable_and_changes_with_content(tmp_path: Path):
     changed = load_suite(write_suite(tmp_path, text.replace("sigma: 0.005", "sigma: 0.01")))
     assert changed.sha256() != suite.sha256()
     assert suite.model_copy(update={"shards": 8}).sha256() == suite.sha256()  # where, not what
+    assert suite.model_copy(update={"title": "Another Name"}).sha256() == suite.sha256()
 
 
 @pytest.mark.parametrize(
