@@ -21,6 +21,7 @@ from server.accounts import pages as accounts_pages
 from server.challenges import api as challenges_api
 from server.challenges import pages as challenges_pages
 from server.kit import pages
+from server.kit.apidocs import mount_api_docs
 from server.kit.db import make_engine, session_factory
 from server.kit.deps import Services
 from server.kit.handlers import install_error_handlers
@@ -29,6 +30,7 @@ from server.kit.ratelimit import MemoryRateLimiter, RateLimiter
 from server.kit.settings import Settings
 from server.leaderboard import api as leaderboard_api
 from server.leaderboard import pages as leaderboard_pages
+from server.registry import api as registry_api
 from server.submissions import api as submissions_api
 from server.submissions import events, internal, submit_pages
 from server.submissions import pages as submissions_pages
@@ -87,6 +89,8 @@ def create_app(
         version="1.0",
         summary="Evaluation service for simulated robot-manipulation policies",
         lifespan=lifespan,
+        docs_url=None,  # served from this server's own assets (`mount_api_docs`): works offline
+        redoc_url=None,
     )
     app.state.services = svc
     app.state.score_history = challenges_pages.ScoreHistory()
@@ -94,6 +98,8 @@ def create_app(
     app.state.event_slots = events.StreamSlots()
     for api in (accounts_api, challenges_api, leaderboard_api, submissions_api, internal):
         app.include_router(api.router)
+    app.include_router(registry_api.router)
+    app.include_router(registry_api.public)
     pages.install(
         app,
         [
@@ -106,6 +112,7 @@ def create_app(
         ],
     )
     install_error_handlers(app)
+    mount_api_docs(app)
     install_monitoring(app, sessions, settings)
     return app
 

@@ -65,8 +65,43 @@ class Settings(BaseSettings):
     """Registries spoken to over plain HTTP (a local test registry), comma-separated."""
 
     registry_timeout: float = 10.0
+    """Seconds all the requests of one image pin may take together (manifests, token, index
+    entries), whatever the registry does."""
     max_image_bytes: int = 4 * 1024**3
     """Refuse images whose layers sum to more than this."""
+
+    registry_domain: str | None = None
+    """The service's own registry as participants and workers name it (``127.0.0.1:5000``,
+    ``registry.example.org``); None: the service has no registry of its own (docs/registry.md).
+    It counts as allowed; a loopback one is spoken to over plain HTTP."""
+
+    registry_internal_url: str | None = None
+    """Where the server itself reaches its registry to pin images (``http://manieval-registry:
+    5000`` in a cluster); None: ``registry_domain`` over https (http on loopback)."""
+
+    registry_service: str = "manieval-registry"
+    """The registry's ``auth.token.service``: the audience of the tokens the server signs."""
+
+    registry_issuer: str = "manieval"
+    """The registry's ``auth.token.issuer``: the issuer of the tokens the server signs."""
+
+    registry_token_ttl_s: int = Field(default=300, ge=10, le=3600)
+    """Seconds a registry token is valid; an API token revoked is refused at the next one."""
+
+    registry_key_dir: Path | None = None
+    """Directory with ``tls.key`` and ``tls.crt`` that sign registry tokens (a mounted
+    ``kubernetes.io/tls`` Secret); None: ``<data_dir>/registry-key``, made on first use in dev
+    mode."""
+
+    registry_pull_user: str = "manieval-puller"
+    """User name of the pull-only credential (workers, Kubernetes nodes)."""
+
+    registry_pull_password: SecretStr | None = None
+    """Password of the pull-only credential; required outside dev mode when the service has a
+    registry (at least 32 characters)."""
+
+    registry_token_rate: str = "60/minute"
+    """Token requests per client address and per user name (``/registry/token``)."""
 
     allow_local_policies: bool = False
     """Accept ``local:NAME`` submissions of the bundled example policies (demo only)."""
@@ -108,6 +143,18 @@ class Settings(BaseSettings):
     cookie_secure: bool = True
     """Send the session cookie only over HTTPS; the embedded demo turns it off."""
 
+    # input limits (issue 13)
+    max_body_bytes: int = Field(default=64 * 1024, ge=1024, le=64 * 1024**2)
+    """Largest request body (JSON or form) accepted; a larger one gets 413 before parsing."""
+    max_internal_body_bytes: int = Field(default=16 * 1024**2, ge=64 * 1024, le=1024**3)
+    """Largest body of a worker's report to ``/internal/v1`` (a result and a log tail)."""
+    login_failures_per_address: Annotated[str, BeforeValidator(Rate.checked)] = "30/hour"
+    """Failed logins one client address may make, whatever account (docs/server.md)."""
+    login_failures_per_account_address: Annotated[str, BeforeValidator(Rate.checked)] = "5/hour"
+    """Failed logins one client address may make against one account (docs/server.md)."""
+    password_min_score: int = Field(default=3, ge=0, le=4)
+    """Weakest password accepted, as zxcvbn's score (0 guessable in seconds, 4 very strong)."""
+
     @model_validator(mode="after")
     def _check(self) -> Settings:
         for name in ("secret_key", "seed_secret", "worker_token"):
@@ -122,15 +169,28 @@ class Settings(BaseSettings):
         nxt = self.worker_token_next
         if nxt is not None and len(nxt.get_secret_value()) < 32:
             raise ValueError("MANIEVAL_WORKER_TOKEN_NEXT must be at least 32 characters")
-        for name in ("register_rate", "login_rate", "token_rate", "submit_rate"):
+        for name in (
+            "register_rate",
+            "login_rate",
+            "token_rate",
+            "submit_rate",
+            "registry_token_rate",
+        ):
             Rate.parse(getattr(self, name))
+        pull = self.registry_pull_password
+        if self.registry_domain is not None and not self.dev_mode:
+            if pull is None or len(pull.get_secret_value()) < 32:
+                raise ValueError(
+                    "MANIEVAL_REGISTRY_PULL_PASSWORD must be set to at least 32 characters "
+                    "when MANIEVAL_REGISTRY_DOMAIN is set"
+                )
         return self
 
     @property
     def resolved_database_url(self) -> str:
         return self.database_url or f"sqlite:///{self.data_dir / 'manieval.db'}"
 
-    def rate(self, name: Literal["register", "login", "token", "submit"]) -> Rate:
+    def rate(self, name: Literal["register", "login", "token", "submit", "registry_token"]) -> Rate:
         return Rate.parse(getattr(self, f"{name}_rate"))
 
     def secret(self, name: SecretName) -> str:
@@ -142,7 +202,7 @@ class Settings(BaseSettings):
         return _generated_secret(self.data_dir / "secrets.json", name)
 
 
-SecretName = Literal["secret_key", "seed_secret", "worker_token"]
+SecretName = Literal["secret_key", "seed_secret", "worker_token", "registry_pull_password"]
 
 
 def _generated_secret(path: Path, name: str) -> str:

@@ -2,14 +2,17 @@
 
 :func:`parse_reference` follows github.com/distribution/reference: ``policy`` means
 ``docker.io/library/policy:latest``. The errors of the whole image path (parsing here, resolving
-in :mod:`server.submissions.images`) share one base class, :class:`ImageError`.
+in :mod:`server.submissions.images`) share one base class, :class:`ImageError`. The checks of
+what a reference points at (descriptors, manifests, digests) are pure functions here too.
 """
 
 from __future__ import annotations
 
+import hashlib
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 # The grammar, transcribed from distribution/reference regexp.go (ASCII only).
 _ALPHANUMERIC = r"[a-z0-9]+"
@@ -230,3 +233,70 @@ def check_digest(digest: str, error: type[ImageError]) -> None:
 def canonical_domain(domain: str) -> str:
     domain = domain.lower()
     return DEFAULT_DOMAIN if domain == "index.docker.io" else domain
+
+
+# What a reference points at: content descriptors and manifests, checked ---------------------
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    media_type: str
+    digest: str
+    size: int
+
+
+def descriptor(raw: object, *, what: str) -> Descriptor:
+    """A content descriptor (mediaType, digest, size) of a manifest, checked."""
+    if not isinstance(raw, dict):
+        raise InvalidManifest(f"{what}: a descriptor is not a JSON object")
+    digest, size, media_type = raw.get("digest"), raw.get("size"), raw.get("mediaType", "")
+    if not isinstance(digest, str):
+        raise InvalidManifest(f"{what}: a descriptor has no digest")
+    check_digest(digest, InvalidManifest)
+    if not isinstance(size, int) or isinstance(size, bool) or size < 0:
+        raise InvalidManifest(f"{what}: descriptor {digest} has no valid size")
+    return Descriptor(media_type=str(media_type), digest=digest, size=size)
+
+
+def image_size(manifest: Mapping[str, Any], *, what: str) -> int:
+    """Bytes a pull downloads: the config blob plus every layer, as the manifest states."""
+    layers = manifest.get("layers")
+    if not isinstance(layers, list):
+        raise InvalidManifest(f"the manifest of {what} has no layer list")
+    config = descriptor(manifest.get("config"), what=f"config of {what}")
+    return config.size + sum(descriptor(layer, what=f"layer of {what}").size for layer in layers)
+
+
+def amd64_entry(index: Mapping[str, Any], *, what: str) -> Descriptor:
+    """The linux/amd64 entry of an OCI image index or Docker manifest list."""
+    entries = index.get("manifests")
+    if not isinstance(entries, list):
+        raise InvalidManifest(f"the image index of {what} has no manifest list")
+    platforms = []
+    for raw in entries:
+        platform = raw.get("platform") if isinstance(raw, dict) else None
+        if not isinstance(platform, dict):
+            continue
+        if platform.get("os") == "linux" and platform.get("architecture") == "amd64":
+            return descriptor(raw, what=f"the image index of {what}")
+        platforms.append(f"{platform.get('os')}/{platform.get('architecture')}")
+    found = ", ".join(sorted(set(platforms))) or "none"
+    raise UnsupportedPlatform(
+        f"{what} has no linux/amd64 image (it has: {found}); build it for linux/amd64"
+    )
+
+
+def verify_digest(body: bytes, *, claimed: str | None, expected: str | None) -> str:
+    """The digest of ``body``, once it matches what we asked for and what the registry says."""
+    for digest in (expected, claimed):
+        if digest is None:
+            continue
+        check_digest(digest, InvalidManifest)
+        algorithm = digest.partition(":")[0]
+        actual = f"{algorithm}:{hashlib.new(algorithm, body).hexdigest()}"
+        if actual != digest:
+            raise InvalidManifest(
+                f"manifest content does not match its digest: expected {digest}, "
+                f"the bytes received hash to {actual}"
+            )
+    return expected or f"sha256:{hashlib.sha256(body).hexdigest()}"

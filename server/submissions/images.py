@@ -7,11 +7,10 @@ linux/amd64 image, so what is evaluated later is exactly what was checked now.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
-import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any, Protocol
@@ -21,6 +20,9 @@ import httpx
 from evaluator.bundled import LOCAL_PREFIX, bundled_policies
 from server.kit.errors import Invalid, Unavailable
 from server.kit.settings import Settings
+from server.registry.deadline import Deadline, deadline_transport
+from server.registry.own import OwnRegistry, own_registry_of
+from server.registry.tokens import namespace_for
 from server.submissions.image_refs import (
     DEFAULT_DOMAIN,
     ImageError,
@@ -31,12 +33,13 @@ from server.submissions.image_refs import (
     RegistryNotAllowed,
     RegistryUnavailable,
     ResolvedImage,
-    UnsupportedPlatform,
+    amd64_entry,
     canonical_domain,
-    check_digest,
+    image_size,
     parse_reference,
+    verify_digest,
 )
-from server.submissions.service import Resolved, Resolver
+from server.submissions.service import Resolved
 
 OCI_INDEX = "application/vnd.oci.image.index.v1+json"
 OCI_MANIFEST = "application/vnd.oci.image.manifest.v1+json"
@@ -48,6 +51,7 @@ _ACCEPT = ", ".join((OCI_INDEX, OCI_MANIFEST, DOCKER_MANIFEST_LIST, DOCKER_MANIF
 MAX_MANIFEST_BYTES = 4 * 1024 * 1024
 _MAX_SMALL_BODY = 64 * 1024  # error bodies and token answers
 _API_HOSTS = {DEFAULT_DOMAIN: "registry-1.docker.io"}  # Docker Hub serves its API elsewhere
+_TOKEN_HOSTS = {DEFAULT_DOMAIN: "auth.docker.io"}  # ... and its tokens too
 _NOT_FOUND_CODES = frozenset({"MANIFEST_UNKNOWN", "NAME_UNKNOWN"})
 
 
@@ -55,20 +59,32 @@ class Registry(Protocol):
     def resolve(self, ref: ImageReference, *, max_bytes: int) -> ResolvedImage: ...
 
 
-def image_resolver(settings: Settings, registry: Registry | None = None) -> Resolver:
+class ImageResolver(Protocol):
+    """A :data:`Resolver` that also takes the submitting user's name."""
+
+    def __call__(self, image: str, *, owner: str | None = None) -> Resolved: ...
+
+
+def image_resolver(settings: Settings, registry: Registry | None = None) -> ImageResolver:
     """Validate a submitted reference and pin it through the registry; every problem is a 422
-    on the `image` field."""
+    on the `image` field. With ``owner``, an image on the service's own registry must be in
+    that user's namespace."""
+    own = own_registry_of(settings)
     client = registry or RegistryClient(
         allowed_registries=settings.allowed_registries,
         insecure_registries=settings.insecure_registries,
         timeout=settings.registry_timeout,
+        own_registry=own,
     )
 
-    def resolve(image: str) -> Resolved:
+    def resolve(image: str, *, owner: str | None = None) -> Resolved:
         if image.startswith(LOCAL_PREFIX):
             return _resolve_local(image, settings)
         try:
-            resolved = client.resolve(parse_reference(image), max_bytes=settings.max_image_bytes)
+            ref = parse_reference(image)
+            if own is not None and owner is not None:
+                _check_namespace(ref, own=own, owner=owner)
+            resolved = client.resolve(ref, max_bytes=settings.max_image_bytes)
         except RegistryUnavailable as exc:  # ours or theirs, not the participant's: retry later
             raise Unavailable(str(exc), fields={"image": str(exc)}) from None
         except ImageError as exc:
@@ -76,6 +92,18 @@ def image_resolver(settings: Settings, registry: Registry | None = None) -> Reso
         return Resolved(pinned=resolved.pinned, size_bytes=resolved.size_bytes)
 
     return resolve
+
+
+def _check_namespace(ref: ImageReference, *, own: OwnRegistry, owner: str) -> None:
+    """Participants submit their own images from the service's registry, not each other's."""
+    if canonical_domain(ref.domain) != own.domain:
+        return
+    namespace = namespace_for(owner)
+    if namespace is None or ref.path.split("/")[0] != namespace:
+        raise ImageNotFound(
+            f"images on {ref.domain} must be under your namespace, "
+            f"{ref.domain}/{namespace or owner}/..."
+        )
 
 
 def _resolve_local(image: str, settings: Settings) -> Resolved:
@@ -104,6 +132,7 @@ class RegistryClient:
         timeout: float = 10.0,
         transport: httpx.BaseTransport | None = None,
         max_manifest_bytes: int = MAX_MANIFEST_BYTES,
+        own_registry: OwnRegistry | None = None,
     ) -> None:
         if isinstance(allowed_registries, str) or isinstance(insecure_registries, str):
             raise TypeError("registries must be a sequence of domains, not one string")
@@ -112,29 +141,40 @@ class RegistryClient:
         self._timeout = timeout
         self._transport = transport
         self._max_manifest_bytes = max_manifest_bytes
+        self._own = own_registry
+        self._token_domains = self._allowed | {
+            _TOKEN_HOSTS[d] for d in self._allowed if d in _TOKEN_HOSTS
+        }
+        if own_registry is not None:
+            self._allowed |= {own_registry.domain}
+            self._token_domains |= {own_registry.domain}
 
     def resolve(self, ref: ImageReference, *, max_bytes: int) -> ResolvedImage:
         """Pin ``ref`` to its verified manifest digest and measure its linux/amd64 image."""
         domain = canonical_domain(ref.domain)
-        if domain not in self._allowed:
-            allowed = ", ".join(sorted(self._allowed)) or "none"
+        own = self._own if self._own is not None and self._own.domain == domain else None
+        if domain not in self._allowed and own is None:
+            allowed = ", ".join(sorted(self._allowed))
             raise RegistryNotAllowed(
-                f"images must come from an allowed registry ({allowed}), not {ref.domain}"
+                f"images must come from an allowed registry ({allowed or 'none'}), not {ref.domain}"
             )
         insecure = domain in self._insecure
-        host = _API_HOSTS.get(domain, ref.domain)
+        base_url = f"{'http' if insecure else 'https'}://{_API_HOSTS.get(domain, ref.domain)}"
+        deadline = Deadline(self._timeout)  # one for every hop: manifests, token, index entries
         try:
             with httpx.Client(
-                base_url=f"{'http' if insecure else 'https'}://{host}",
+                base_url=own.base_url if own is not None else base_url,
                 timeout=self._timeout,
-                transport=self._transport,
+                transport=self._transport or deadline_transport(deadline),
             ) as http:
                 pull = _Pull(
                     http,
                     ref,
-                    timeout=self._timeout,
+                    deadline=deadline,
                     max_manifest_bytes=self._max_manifest_bytes,
                     allow_http_realm=insecure,
+                    token_domains=self._token_domains,
+                    token=own.pull_token(ref.path) if own is not None else None,
                 )
                 digest, size = pull.measure()
         except httpx.TimeoutException as exc:
@@ -168,16 +208,19 @@ class _Pull:
         http: httpx.Client,
         ref: ImageReference,
         *,
-        timeout: float,
+        deadline: Deadline,
         max_manifest_bytes: int,
         allow_http_realm: bool,
+        token_domains: frozenset[str],
+        token: str | None = None,
     ) -> None:
         self._http = http
         self._ref = ref
-        self._timeout = timeout
+        self._deadline = deadline
         self._max_manifest_bytes = max_manifest_bytes
         self._allow_http_realm = allow_http_realm
-        self._token: str | None = None
+        self._token_domains = token_domains
+        self._token = token
 
     def measure(self) -> tuple[str, int]:
         """The digest to pin, and the size of the image a linux/amd64 machine pulls."""
@@ -215,13 +258,19 @@ class _Pull:
         return _Manifest(digest=digest, media_type=media_type, document=document)
 
     def _get(self, url: str) -> tuple[httpx.Headers, bytes]:
-        with self._http.stream("GET", url, headers=self._headers()) as response:
+        with self._stream(url, headers=self._headers()) as response:
             if response.status_code != 401 or self._token is not None:
                 return self._answer(response)
             challenge = response.headers.get("WWW-Authenticate", "")
         self._token = self._fetch_token(challenge)
-        with self._http.stream("GET", url, headers=self._headers()) as response:
+        with self._stream(url, headers=self._headers()) as response:
             return self._answer(response)
+
+    def _stream(
+        self, url: str | httpx.URL, *, headers: dict[str, str] | None = None
+    ) -> AbstractContextManager[httpx.Response]:
+        """A GET that must be over by the deadline shared by every request of this resolve."""
+        return self._http.stream("GET", url, headers=headers, timeout=self._deadline.remaining())
 
     def _headers(self) -> dict[str, str]:
         # identity: a compressed manifest could inflate far past the size cap in one chunk
@@ -242,14 +291,12 @@ class _Pull:
 
     def _read(self, response: httpx.Response, limit: int) -> bytes:
         """At most ``limit + 1`` bytes of the body, so a caller can tell it was cut."""
-        deadline = time.monotonic() + self._timeout
         body = bytearray()
         for chunk in response.iter_bytes():
             body += chunk
             if len(body) > limit:
                 break
-            if time.monotonic() > deadline:  # httpx's timeout is per read, not per body
-                raise RegistryUnavailable(f"registry {self._ref.domain} is sending too slowly")
+            self._deadline.remaining()  # httpx's timeout is per read, not per body
         return bytes(body[: limit + 1])
 
     def _failure(self, status: int, body: bytes) -> ImageError:
@@ -275,6 +322,14 @@ class _Pull:
                 "evaluated"
             )
         realm = httpx.URL(params["realm"])
+        realm_domain = canonical_domain(f"[{realm.host}]" if ":" in realm.host else realm.host) + (
+            f":{realm.port}" if realm.port is not None else ""
+        )
+        if realm_domain not in self._token_domains:
+            raise RegistryNotAllowed(
+                f"{ref.domain} sends us for a token to {realm_domain}, which is not an allowed "
+                "registry"
+            )
         if realm.scheme != "https" and not (realm.scheme == "http" and self._allow_http_realm):
             raise RegistryUnavailable(
                 f"{ref.domain} sends us for a token to {realm}, which is not https"
@@ -284,7 +339,7 @@ class _Pull:
             "scope": params.get("scope") or f"repository:{ref.path}:pull",
         }
         url = realm.copy_merge_params({key: value for key, value in query.items() if value})
-        with self._http.stream("GET", url) as response:
+        with self._stream(url) as response:
             body = self._read(response, _MAX_SMALL_BODY)
             if response.status_code != 200:
                 raise self._failure(response.status_code, body)
@@ -293,70 +348,6 @@ class _Pull:
         if not isinstance(token, str) or not token:
             raise RegistryUnavailable(f"the token service of {ref.domain} sent no token")
         return token
-
-
-@dataclass(frozen=True)
-class Descriptor:
-    media_type: str
-    digest: str
-    size: int
-
-
-def descriptor(raw: object, *, what: str) -> Descriptor:
-    """A content descriptor (mediaType, digest, size) of a manifest, checked."""
-    if not isinstance(raw, dict):
-        raise InvalidManifest(f"{what}: a descriptor is not a JSON object")
-    digest, size, media_type = raw.get("digest"), raw.get("size"), raw.get("mediaType", "")
-    if not isinstance(digest, str):
-        raise InvalidManifest(f"{what}: a descriptor has no digest")
-    check_digest(digest, InvalidManifest)
-    if not isinstance(size, int) or isinstance(size, bool) or size < 0:
-        raise InvalidManifest(f"{what}: descriptor {digest} has no valid size")
-    return Descriptor(media_type=str(media_type), digest=digest, size=size)
-
-
-def image_size(manifest: Mapping[str, Any], *, what: str) -> int:
-    """Bytes a pull downloads: the config blob plus every layer, as the manifest states."""
-    layers = manifest.get("layers")
-    if not isinstance(layers, list):
-        raise InvalidManifest(f"the manifest of {what} has no layer list")
-    config = descriptor(manifest.get("config"), what=f"config of {what}")
-    return config.size + sum(descriptor(layer, what=f"layer of {what}").size for layer in layers)
-
-
-def amd64_entry(index: Mapping[str, Any], *, what: str) -> Descriptor:
-    """The linux/amd64 entry of an OCI image index or Docker manifest list."""
-    entries = index.get("manifests")
-    if not isinstance(entries, list):
-        raise InvalidManifest(f"the image index of {what} has no manifest list")
-    platforms = []
-    for raw in entries:
-        platform = raw.get("platform") if isinstance(raw, dict) else None
-        if not isinstance(platform, dict):
-            continue
-        if platform.get("os") == "linux" and platform.get("architecture") == "amd64":
-            return descriptor(raw, what=f"the image index of {what}")
-        platforms.append(f"{platform.get('os')}/{platform.get('architecture')}")
-    found = ", ".join(sorted(set(platforms))) or "none"
-    raise UnsupportedPlatform(
-        f"{what} has no linux/amd64 image (it has: {found}); build it for linux/amd64"
-    )
-
-
-def verify_digest(body: bytes, *, claimed: str | None, expected: str | None) -> str:
-    """The digest of ``body``, once it matches what we asked for and what the registry says."""
-    for digest in (expected, claimed):
-        if digest is None:
-            continue
-        check_digest(digest, InvalidManifest)
-        algorithm = digest.partition(":")[0]
-        actual = f"{algorithm}:{hashlib.new(algorithm, body).hexdigest()}"
-        if actual != digest:
-            raise InvalidManifest(
-                f"manifest content does not match its digest: expected {digest}, "
-                f"the bytes received hash to {actual}"
-            )
-    return expected or f"sha256:{hashlib.sha256(body).hexdigest()}"
 
 
 def parse_challenge(header: str) -> tuple[str, dict[str, str]]:

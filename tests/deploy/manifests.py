@@ -39,12 +39,22 @@ SECRETS = {
         "MANIEVAL_WORKER_TOKEN",
         "MANIEVAL_BROKER_URL",
         "MANIEVAL_REDIS_URL",
+        "MANIEVAL_REGISTRY_PULL_PASSWORD",
     },
     "manieval-db": {"MANIEVAL_DATABASE_URL"},
     "manieval-worker-secrets": {"MANIEVAL_WORKER_TOKEN", "MANIEVAL_BROKER_URL"},
 }
 OPTIONAL_SECRETS = {"manieval-secrets": {"MANIEVAL_METRICS_TOKEN"}}
 """Keys a Secret made by hand may hold beyond the dev overlay's."""
+# The service's own registry's Secrets (k8s/base/registry.yaml): (namespace, type, keys).
+REGISTRY_SECRETS = {
+    "manieval-registry-signing": ("manieval", "kubernetes.io/tls", {"tls.crt", "tls.key"}),
+    "manieval-registry-pull": (
+        "manieval-eval",
+        "kubernetes.io/dockerconfigjson",
+        {".dockerconfigjson"},
+    ),
+}
 
 
 def require_kubectl() -> str:

@@ -17,6 +17,7 @@ from tests.deploy.manifests import (
     EVALUATIONS,
     K8S,
     OVERLAYS,
+    REGISTRY_SECRETS,
     SECRETS,
     Json,
     config_maps_read,
@@ -206,7 +207,9 @@ def test_the_evaluation_namespace_holds_only_rules_and_the_rest_is_the_control_p
         if kind in CLUSTER_SCOPED:
             assert namespace is None
         elif namespace == EVALUATIONS:
-            assert kind in EVALUATION_NAMESPACE_KINDS, f"{kind} in {EVALUATIONS}"
+            # and the registry's pull credential, which the nodes read for evaluation pods
+            pull = (kind, o["metadata"]["name"]) == ("Secret", "manieval-registry-pull")
+            assert kind in EVALUATION_NAMESPACE_KINDS or pull, f"{kind} in {EVALUATIONS}"
         else:
             assert namespace == CONTROL_PLANE, f"{kind}/{o['metadata']['name']}"
 
@@ -239,7 +242,7 @@ def missing_references(objects: list[Json], made_by_hand: set[str]) -> list[str]
 def test_everything_a_pod_names_is_in_the_overlay_or_made_by_hand(overlay: str):
     objects = render(overlay)
     # The dev overlay holds its Secrets (and Postgres's); production's are made by hand.
-    made_by_hand = set() if overlay == "dev" else set(SECRETS)
+    made_by_hand = set() if overlay == "dev" else set(SECRETS) | set(REGISTRY_SECRETS)
     assert missing_references(objects, made_by_hand) == []
     if overlay != "dev":
         assert missing_references(objects, set()) != [], "the check sees the missing Secrets"

@@ -19,6 +19,7 @@ from tests.deploy.manifests import (
     EVALUATIONS,
     OPTIONAL_SECRETS,
     OVERLAYS,
+    REGISTRY_SECRETS,
     REPO,
     SECRETS,
     Json,
@@ -42,6 +43,7 @@ WORKER_MAY = {
     ("", "pods/log"): {"get"},
     ("", "events"): {"list"},
     ("", "secrets"): {"create"},  # each Job's evaluation; never read back
+    ("", "resourcequotas"): {"list"},  # room for a Job before creating it
 }
 RECONCILER_MAY = {("batch", "jobs"): {"get", "list", "delete"}}
 # Role (and ServiceAccount, and Deployment) name: what its pods may do in manieval-eval.
@@ -271,7 +273,11 @@ def test_workers_and_the_reconciler_hold_no_database_url_and_no_server_secret(ov
 def test_the_api_and_the_migration_read_only_their_secrets(overlay: str):
     objects = render(overlay)
     api = one(objects, "Deployment", "manieval-api")["spec"]["template"]["spec"]
-    assert secrets_read(api, "api") == {"manieval-secrets", "manieval-db"}
+    assert secrets_read(api, "api") == {
+        "manieval-secrets",
+        "manieval-db",
+        "manieval-registry-signing",
+    }
     migrate = one(objects, "Job", "manieval-migrate")["spec"]["template"]["spec"]
     assert secrets_read(migrate, "migrate") == {"manieval-db"}
     assert keys_read(objects, migrate, "migrate") == {"MANIEVAL_DATABASE_URL"}
@@ -279,7 +285,7 @@ def test_the_api_and_the_migration_read_only_their_secrets(overlay: str):
         for c in containers(template["spec"]):
             if not c["image"].startswith("docker.io/library/"):  # Postgres, Redis
                 read = secrets_read(template["spec"], c["name"])
-                assert read <= set(SECRETS), workload["metadata"]["name"]
+                assert read <= set(SECRETS) | set(REGISTRY_SECRETS), workload["metadata"]["name"]
 
 
 def test_the_dev_secrets_hold_what_each_pod_needs_and_the_worker_token_agrees():
@@ -427,7 +433,7 @@ def test_the_api_admits_only_the_ingress_controller_the_workers_and_the_reconcil
     objects = render(overlay)
     api_in = rules(objects, CONTROL_PLANE, component("api"), "Ingress")
     expected: dict[str, set[int | str]] = {"worker": {8000}, "reconciler": {8000}}
-    for name in ("api", "migrate", "postgres", "redis", "worker", "reconciler"):
+    for name in ("api", "migrate", "postgres", "redis", "worker", "reconciler", "registry"):
         ports = opened(api_in, "from", component(name), CONTROL_PLANE, CONTROL_PLANE)
         assert ports == expected.get(name, set()), name
     assert opened(api_in, "from", *INGRESS_CONTROLLER, CONTROL_PLANE) == {8000}
@@ -445,13 +451,13 @@ def test_control_plane_pods_reach_only_what_they_need(overlay: str):
     dns = {53}
     workers = dns | {6379, 443, 6443, 8000}  # Redis, the Kubernetes API, the server's API
     expected = {
-        "api": dns | {5432, 6379, 443},  # registries: pinning tags to digests
+        # registries, pinning tags to digests: others over HTTPS, the service's own on 5000
+        "api": dns | {5432, 6379, 443, 5000},
         "worker": workers,
         "reconciler": workers,
         "migrate": dns | {5432},
+        "registry": dns,  # it verifies tokens itself
     }
-    if overlay == "dev":
-        expected["api"] |= {5000}  # the try-out's local registry
     for name, ports in expected.items():
         assert _ports(rules(objects, CONTROL_PLANE, component(name), "Egress")) == ports, name
 

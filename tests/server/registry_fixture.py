@@ -18,13 +18,14 @@ import hashlib
 import json
 import os
 import random
+import re
 import shutil
 import socket
 import subprocess
 import threading
 import time
 import urllib.parse
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -53,6 +54,7 @@ class LocalRegistry:
     url: str
     storage: Path
     token_requests: list[dict[str, str]] = field(default_factory=list)
+    realm: str = ""  # the token service's URL, behind token auth
 
 
 @dataclass(frozen=True)
@@ -124,15 +126,15 @@ def fixture_token_registry(
                 url=f"http://{domain}",
                 storage=registry.storage,
                 token_requests=requests,
+                realm=realm,
             )
 
 
 @contextmanager
 def serve_registry(binary: str, work: Path, *, storage: Path, auth: Any = None) -> Iterator[str]:
     """Run ``docker-registry serve`` on a free port; yields its domain once ``/v2/`` answers."""
-    log = work / "registry.log"
-    for _ in range(3):  # another process may take the free port before the registry does
-        domain = f"127.0.0.1:{free_port()}"
+
+    def config(domain: str) -> dict[str, Any]:
         config: dict[str, Any] = {
             "version": "0.1",
             "log": {"level": "error", "accesslog": {"disabled": True}},
@@ -141,6 +143,22 @@ def serve_registry(binary: str, work: Path, *, storage: Path, auth: Any = None) 
         }
         if auth is not None:
             config["auth"] = auth
+        return config
+
+    with serve_registry_config(binary, work, config) as domain:
+        yield domain
+
+
+@contextmanager
+def serve_registry_config(
+    binary: str, work: Path, config_for: Callable[[str], dict[str, Any]]
+) -> Iterator[str]:
+    """Run ``docker-registry serve`` with ``config_for(domain)`` on a free port; yields the
+    domain once ``/v2/`` answers."""
+    log = work / "registry.log"
+    for _ in range(3):  # another process may take the free port before the registry does
+        domain = f"127.0.0.1:{free_port()}"
+        config = config_for(domain)
         (work / "config.yml").write_text(json.dumps(config, indent=2))  # JSON is YAML
         with log.open("ab") as out:
             process = subprocess.Popen(
@@ -243,6 +261,45 @@ class _TokenService:
             server.shutdown()
             server.server_close()
             thread.join(timeout=5)
+
+
+class RegistryLogin(httpx.Auth):
+    """What ``docker login`` sets up: on a registry's Bearer challenge, ask its token service
+    (with these Basic credentials, if any) for the challenged scope, and retry with the token.
+    Tokens are kept per scope; ``tokens`` lists every one received."""
+
+    requires_response_body = True
+
+    def __init__(self, username: str | None = None, password: str | None = None) -> None:
+        self._basic = (
+            httpx.BasicAuth(username, password) if username and password is not None else None
+        )
+        self._by_scope: dict[str, str] = {}
+        self.tokens: list[str] = []
+        self.refusals: list[httpx.Response] = []
+
+    def auth_flow(self, request: httpx.Request) -> Generator[httpx.Request, httpx.Response, None]:
+        response = yield request
+        challenge = response.headers.get("WWW-Authenticate", "")
+        if response.status_code != 401 or not challenge.lower().startswith("bearer "):
+            return
+        params = dict(re.findall(r'(\w+)="([^"]*)"', challenge))
+        scope = params.get("scope", "")
+        token = self._by_scope.get(scope)
+        if token is None:
+            query = {k: v for k, v in (("service", params.get("service")), ("scope", scope)) if v}
+            ask = httpx.Request("GET", httpx.URL(params["realm"], params=query))
+            if self._basic is not None:
+                ask = next(self._basic.auth_flow(ask))
+            answer = yield ask
+            if answer.status_code != 200:
+                self.refusals.append(answer)
+                return
+            token = answer.json()["token"]
+            self._by_scope[scope] = token
+            self.tokens.append(token)
+        request.headers["Authorization"] = f"Bearer {token}"
+        yield request
 
 
 def _b64url(data: bytes) -> str:

@@ -12,9 +12,11 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import httpx
 import pytest
@@ -32,7 +34,10 @@ from server.submissions.image_refs import (
     RegistryUnavailable,
     ResolvedImage,
     UnsupportedPlatform,
+    amd64_entry,
+    image_size,
     parse_reference,
+    verify_digest,
 )
 from server.submissions.images import (
     DOCKER_MANIFEST,
@@ -40,10 +45,7 @@ from server.submissions.images import (
     OCI_INDEX,
     OCI_MANIFEST,
     RegistryClient,
-    amd64_entry,
-    image_size,
     parse_challenge,
-    verify_digest,
 )
 from tests.server.registry_fixture import (  # noqa: F401 - fixture_*: pytest fixtures
     LocalRegistry,
@@ -371,8 +373,12 @@ def pushed(registry: LocalRegistry) -> Pushed:
 
 
 def resolve(where: LocalRegistry, image: str, *, max_bytes: int = 100 * MB) -> ResolvedImage:
+    """Resolve on ``where``, its token service allowed too."""
+    allowed = [where.domain]
+    if where.realm:
+        allowed.append(httpx.URL(where.realm).netloc.decode())
     client = RegistryClient(
-        allowed_registries=[where.domain], insecure_registries=[where.domain], timeout=5.0
+        allowed_registries=allowed, insecure_registries=[where.domain], timeout=5.0
     )
     return client.resolve(parse_reference(f"{where.domain}/{image}"), max_bytes=max_bytes)
 
@@ -524,9 +530,12 @@ class FakeRegistry:
         )
         return httpx.Response(status, content=body, headers=headers)
 
-    def resolve(self, image: str, *, max_bytes: int = MB) -> ResolvedImage:
+    def resolve(
+        self, image: str, *, max_bytes: int = MB, allowed: tuple[str, ...] = ("auth.test",)
+    ) -> ResolvedImage:
         client = RegistryClient(
-            allowed_registries=["registry.test"], transport=httpx.MockTransport(self.handle)
+            allowed_registries=["registry.test", *allowed],
+            transport=httpx.MockTransport(self.handle),
         )
         return client.resolve(parse_reference(f"registry.test/{image}"), max_bytes=max_bytes)
 
@@ -683,3 +692,142 @@ def test_token_that_is_still_refused_means_not_public() -> None:
         "https://auth.test/token?service=registry.test&scope=repository%3Ateam%2Fpolicy%3Apull"
     )
     assert len(fake.seen) == 3  # one token, one retry
+
+
+# Token realms must be allowed too (issue 13) -------------------------------------------------
+
+
+def test_token_realm_off_the_allow_list_is_never_asked() -> None:
+    header = 'Bearer realm="https://evil.test/token",service="registry.test"'
+    fake = FakeRegistry(
+        {
+            "/v2/team/policy/manifests/v1": challenge(header),
+            "/token": (200, b'{"token": "t"}', {}),
+        }
+    )
+    with pytest.raises(RegistryNotAllowed, match=r"token to evil\.test, which is not an allowed"):
+        fake.resolve("team/policy:v1")
+    assert not any("evil.test" in url for url in fake.seen)
+
+
+def test_real_registry_with_its_token_service_off_the_allow_list_is_refused(
+    token_registry: LocalRegistry, pushed: Pushed
+) -> None:
+    before = len(token_registry.token_requests)
+    client = RegistryClient(
+        allowed_registries=[token_registry.domain],
+        insecure_registries=[token_registry.domain],
+        timeout=5.0,
+    )
+    with pytest.raises(RegistryNotAllowed, match="not an allowed registry"):
+        client.resolve(parse_reference(f"{token_registry.domain}/team/multi:v1"), max_bytes=MB)
+    assert token_registry.token_requests[before:] == []
+
+
+def test_docker_hub_token_service_is_allowed_with_docker_hub() -> None:
+    body = manifest_bytes()
+    seen: list[str] = []
+
+    def hub(request: httpx.Request) -> httpx.Response:
+        seen.append(f"{request.url.host}{request.url.path}")
+        if request.url.host == "auth.docker.io":
+            return httpx.Response(200, json={"token": "t"})
+        if request.headers.get("Authorization") != "Bearer t":
+            realm = 'Bearer realm="https://auth.docker.io/token",service="registry.docker.io"'
+            return httpx.Response(401, headers={"WWW-Authenticate": realm})
+        return httpx.Response(200, content=body, headers={"Content-Type": OCI_MANIFEST})
+
+    client = RegistryClient(allowed_registries=["docker.io"], transport=httpx.MockTransport(hub))
+    assert client.resolve(parse_reference("team/policy:v1"), max_bytes=MB).size_bytes == 110
+    assert seen == [
+        "registry-1.docker.io/v2/team/policy/manifests/v1",
+        "auth.docker.io/token",
+        "registry-1.docker.io/v2/team/policy/manifests/v1",
+    ]
+
+
+# A total deadline on every registry request (issue 13) ----------------------------------------
+
+
+class SlowRegistry:
+    """A registry on 127.0.0.1 whose every answer is right but slow: it waits ``pause`` seconds
+    before each, or, with ``trickle``, sends each answer one byte every ``pause`` seconds. It
+    asks for a token (its realm is itself) before it serves a manifest."""
+
+    def __init__(self, *, pause: float, trickle: bool = False) -> None:
+        self.pause, self.trickle = pause, trickle
+        self.requests: list[str] = []
+        self.stop = threading.Event()
+        slow = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_GET(self) -> None:
+                slow.requests.append(self.path)
+                message = slow.answer(self.path, self.headers.get("Authorization"))
+                chunks = (
+                    [message[i : i + 1] for i in range(len(message))] if slow.trickle else [message]
+                )
+                try:
+                    for chunk in chunks:
+                        if slow.stop.wait(slow.pause):
+                            return
+                        self.wfile.write(chunk)
+                        self.wfile.flush()
+                except OSError:
+                    pass  # the client gave up, which is what the test wants
+
+            def log_message(self, format: str, *args: object) -> None:
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.server.daemon_threads = True
+        self.server.block_on_close = False
+        self.domain = f"127.0.0.1:{self.server.server_address[1]}"
+
+    def answer(self, path: str, authorization: str | None) -> bytes:
+        if path.startswith("/token"):
+            head, body = "200 OK\r\nContent-Type: application/json", b'{"token": "t"}'
+        elif authorization != "Bearer t":
+            realm = f'Bearer realm="http://{self.domain}/token",service="slow"'
+            head, body = f"401 Unauthorized\r\nWWW-Authenticate: {realm}", b"{}"
+        else:
+            head, body = f"200 OK\r\nContent-Type: {OCI_MANIFEST}", manifest_bytes()
+        return f"HTTP/1.1 {head}\r\nContent-Length: {len(body)}\r\n\r\n".encode() + body
+
+    def resolve(self, *, timeout: float) -> ResolvedImage:
+        client = RegistryClient(
+            allowed_registries=[self.domain], insecure_registries=[self.domain], timeout=timeout
+        )
+        return client.resolve(parse_reference(f"{self.domain}/team/policy:v1"), max_bytes=MB)
+
+    def __enter__(self) -> SlowRegistry:
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.stop.set()
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def test_slow_but_steady_registry_answers_within_the_deadline() -> None:
+    with SlowRegistry(pause=0.05) as slow:
+        assert slow.resolve(timeout=30).size_bytes == 110
+    manifest = "/v2/team/policy/manifests/v1"
+    token = "/token?service=slow&scope=repository%3Ateam%2Fpolicy%3Apull"
+    assert slow.requests == [manifest, token, manifest]
+
+
+def test_three_hops_each_within_the_timeout_share_one_deadline() -> None:
+    # Each answer comes well within the timeout, as httpx counts it; all three do not.
+    with SlowRegistry(pause=1.2) as slow, pytest.raises(RegistryUnavailable, match="within 2 s"):
+        slow.resolve(timeout=2)
+    assert len(slow.requests) == 2  # the manifest, the token; no third request was made
+
+
+def test_registry_trickling_its_answer_byte_by_byte_is_cut_at_the_deadline() -> None:
+    # About 110 bytes at 0.3 s each: every read succeeds, the whole answer would take 33 s.
+    started = time.monotonic()
+    with SlowRegistry(pause=0.3, trickle=True) as slow, pytest.raises(RegistryUnavailable):
+        slow.resolve(timeout=1)
+    assert time.monotonic() - started < 15  # bounded by the deadline, not by the registry

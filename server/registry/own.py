@@ -1,0 +1,47 @@
+"""The service's own registry as the server's registry client sees it: its address, and a
+pull token the server signs for itself (no request to its own token endpoint)."""
+
+from __future__ import annotations
+
+import ipaddress
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from server.kit.settings import Settings
+from server.registry import service
+from server.submissions.image_refs import canonical_domain
+
+
+@dataclass(frozen=True)
+class OwnRegistry:
+    """The service's own registry: where the server reaches it, and how it gets a pull token
+    for one repository without asking anyone (it signs them)."""
+
+    domain: str
+    base_url: str
+    pull_token: Callable[[str], str]
+
+
+def own_registry_of(settings: Settings) -> OwnRegistry | None:
+    """The service's own registry as these settings describe it, or None."""
+    if settings.registry_domain is None:
+        return None
+    domain = canonical_domain(settings.registry_domain)
+    insecure = domain in {canonical_domain(d) for d in settings.insecure_registries}
+    scheme = "http" if insecure or _is_loopback(domain) else "https"
+    return OwnRegistry(
+        domain=domain,
+        base_url=(settings.registry_internal_url or f"{scheme}://{domain}").rstrip("/"),
+        pull_token=lambda repository: service.server_pull_token(settings, repository=repository),
+    )
+
+
+def _is_loopback(domain: str) -> bool:
+    host = domain.rsplit(":", 1)[0] if not domain.endswith("]") else domain
+    host = host.strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
