@@ -13,6 +13,7 @@ from manieval import credentials, render
 from manieval.client import ApiError, Client, Unreachable, is_loopback
 from manieval.connect import ServerOption, connect, resolve_server, saved_login
 from manieval.credentials import Credentials, CredentialsError
+from manieval.engine_login import login_engine_after
 from manieval.errors import ExitCode, fail, handled, server_flag
 
 PasswordStdin = Annotated[
@@ -99,6 +100,8 @@ def login(
         _revoke(saved)
         raise
     err.print(f"logged in to {url} as {saved.username}; token saved in {path}")
+    with Client(url, token=saved.token) as authenticated:
+        login_engine_after(authenticated, username=saved.username)
     if previous is not None and (previous.server, previous.token_id) != (url, saved.token_id):
         _forget(previous)
 

@@ -3,7 +3,7 @@
 import typer
 
 from evaluator.job import evaluate_job
-from manieval import account, participant
+from manieval import account, participant, push
 from manieval.evaluate import evaluate
 from manieval.serve import demo, serve
 from server.cli import admin_app, challenge_app, db_app
@@ -30,6 +30,7 @@ for command in (
     account.logout,
     participant.challenges,
     participant.submit,
+    push.push,
     participant.status,
     participant.logs,
     participant.cancel,

@@ -17,6 +17,8 @@ from rich.console import Console
 from rich.table import Table
 from sqlalchemy import select
 
+from manieval.client import DEFAULT_SERVER
+from manieval.engines import embedded_engines
 from manieval.service import Service
 from server.accounts import service as accounts
 from server.challenges.service import ChallengeOptions, load_challenge
@@ -32,7 +34,13 @@ console = Console(stderr=True, soft_wrap=True)
 
 
 def run_demo(
-    settings: Settings, *, host: str, port: int, episodes: int, exit_when_done: bool
+    settings: Settings,
+    *,
+    host: str,
+    port: int,
+    episodes: int,
+    exit_when_done: bool,
+    with_engines: bool = True,
 ) -> int:
     url = f"http://{host}:{port}"
     upgrade(settings.resolved_database_url)
@@ -45,12 +53,17 @@ def run_demo(
             seed_secret=settings.secret("seed_secret"),
         )
         password = _demo_account(db, settings.data_dir)
-    service = Service(settings, host=host, port=port, sessions=sessions)
+    engines = embedded_engines(settings, host=host, port=port) if with_engines else None
+    service = Service(settings, host=host, port=port, sessions=sessions, engines=engines)
+    for problem in service.start_engines():
+        console.print(f"[yellow]{problem}[/]")
     if not service.start():
         console.print(f"[red]the server could not start on {url} (port in use?)[/]")
         return 1
     console.print(f"ManiEval is running at [bold]{url}[/] (API docs: {url}/docs)")
     console.print(f"data: {settings.data_dir}; log in as [bold]demo[/] / {password}")
+    if engines is not None and engines.registry_domain is not None:
+        _print_participant_path(url, engines.registry_domain)
     try:
         with httpx.Client(base_url=url, timeout=30) as client:
             token = client.post(
@@ -71,6 +84,26 @@ def run_demo(
     finally:
         service.stop()
     return 0
+
+
+def participant_commands(url: str, registry: str, *, user: str = "NAME") -> list[str]:
+    """A participant's path from nothing to a ranked policy image, as shell commands."""
+    server = "" if url == DEFAULT_SERVER else f" --server {url}"
+    return [
+        f"manieval register -u {user} --email {user}@example.org{server}",
+        f"manieval login -u {user}{server}   # also logs Podman/Docker in to {registry}",
+        "docker/policy-base/build.sh   # the base image, once (as root, about a minute)",
+        "cp -r examples/policy-template my-policy && cp -r evaluator/sdk/manieval_sdk my-policy/",
+        "podman build -t my-policy my-policy   # or: docker build",
+        f"manieval push my-policy --challenge {CHALLENGE} --wait{server}",
+    ]
+
+
+def _print_participant_path(url: str, registry: str) -> None:
+    console.print(f"registry: [bold]{registry}[/] (participants push their policy images here)")
+    console.print("a participant's own policy, from the repository's directory:")
+    for command in participant_commands(url, registry):
+        console.print(f"  {command}", markup=False, highlight=False)
 
 
 def _demo_account(db: object, data_dir: Path) -> str:

@@ -37,6 +37,10 @@ class ExitCode(IntEnum):
     CONFLICT = 18  # e.g. cancelling an ended submission, a closed phase, a taken username
     FORBIDDEN = 19
     SERVER_ERROR = 20  # the server failed (5xx) or does not speak the ManiEval API
+    NO_ENGINE = 21  # push: neither Podman nor Docker is installed here
+    IMAGE_NOT_FOUND = 22  # push: the local engine has no such image
+    PUSH_REFUSED = 23  # push: the registry refused the login or the upload (namespace, size)
+    REGISTRY_UNREACHABLE = 24  # push: no answer from the registry
     INTERRUPTED = 130  # Ctrl-C
 
 

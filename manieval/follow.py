@@ -100,6 +100,8 @@ class LineView(View):
     def show(self, s: JSON) -> None:
         super().show(s)
         shown = render.progress_text(s.get("progress")) if s["state"] == "running" else ""
+        if s["state"] == "queued":
+            shown = render.queue_text(s.get("queue"))
         if shown and shown != self.last_progress:
             self.last_progress = shown
             self.console.print(Text(f"submission {s['id']}: {shown}"))
@@ -140,6 +142,8 @@ class LiveView(View):
         assert self.task is not None
         progress = s.get("progress") or {}
         description = s["state"]
+        if s["state"] == "queued" and (place := render.queue_text(s.get("queue"))):
+            description += f": {place}"
         if s["state"] == "running" and progress.get("task"):
             description += f": {progress['task']} ({progress.get('condition', '')})"
         total = progress.get("total") if s["state"] == "running" else None

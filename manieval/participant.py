@@ -95,10 +95,10 @@ def submit(
                 print_json(s)
             err.print(f"follow it: manieval status {s['id']} --wait{server_flag(client.server)}")
             return
-        _wait_and_report(client, s["id"], as_json=as_json)
+        wait_and_report(client, s["id"], as_json=as_json)
 
 
-def _wait_and_report(client: Client, submission_id: int, *, as_json: bool) -> NoReturn:
+def wait_and_report(client: Client, submission_id: int, *, as_json: bool) -> NoReturn:
     """Follow to the end, print the outcome, exit with the final state's code."""
     try:
         final = follow(client, submission_id)
@@ -152,7 +152,7 @@ def status(
     with handled(), connect(server, login="optional") as client:
         s = client.submission(submission_id)
         if wait:
-            _wait_and_report(client, submission_id, as_json=as_json)
+            wait_and_report(client, submission_id, as_json=as_json)
     if as_json:
         print_json(s)
         return

@@ -122,6 +122,13 @@ def submissions_table(items: list[JSON]) -> Table:
     return table
 
 
+def queue_text(queue: object) -> str:
+    """The server's "3rd in the queue, about 4 min" for a queued submission ("" if none)."""
+    if not isinstance(queue, dict):
+        return ""
+    return str(queue.get("text") or "")
+
+
 def submission_summary(s: JSON) -> Table:
     """The submission's facts as a two-column grid."""
     grid = Table.grid(padding=(0, 2))
@@ -137,6 +144,8 @@ def submission_summary(s: JSON) -> Table:
     ]
     if s["state"] == "running" and (shown := progress_text(s.get("progress"))):
         rows.append(("progress", shown))
+    if s["state"] == "queued" and (place := queue_text(s.get("queue"))):
+        rows.append(("queue", place))
     rows += [
         ("image", Text(s["image"])),
         ("pinned", Text(s["pinned_image"])),
@@ -192,8 +201,11 @@ def results_table(s: JSON) -> Table:
 
 def leaderboard_table(board: JSON) -> Table:
     """One leaderboard page: rank, user, score, success per task and mean per condition."""
-    tasks = sorted({t for row in board["items"] for t in row["tasks"]})
-    conditions = sorted({c for row in board["items"] for c in row["conditions"]})
+    # The suite's order, as on the web and in the CSV (older servers: as the rows give it).
+    tasks = board.get("tasks") or list(dict.fromkeys(t for r in board["items"] for t in r["tasks"]))
+    conditions = board.get("conditions") or list(
+        dict.fromkeys(c for r in board["items"] for c in r["conditions"])
+    )
     shown = len(board["items"])
     first = (board["page"] - 1) * board["per_page"] + 1
     title = f"{board['challenge']} leaderboard ({board['phase']})"
@@ -203,7 +215,9 @@ def leaderboard_table(board: JSON) -> Table:
     for column in ("rank", "user", "submission", "score", *tasks, *conditions):
         table.add_column(column, justify="left" if column == "user" else "right")
     for row in board["items"]:
-        rank = str(row["rank"]) if row["rank"] is not None else "baseline"
+        rank = "baseline" if row["rank"] is None else str(row["rank"])
+        if row.get("tied"):
+            rank = f"={rank}"  # its interval overlaps the row above's (docs/metrics.md)
         task_cells = [
             f"{row['tasks'][t]['success_rate']:.2f}" if t in row["tasks"] else "-" for t in tasks
         ]

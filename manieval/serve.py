@@ -37,8 +37,16 @@ def serve(
             console.print(f"[red]cannot start:[/] {problem}")
             raise typer.Exit(3)
         sessions = session_factory(make_engine(s.resolved_database_url))
+    from manieval.engines import embedded_engines
+
+    engines = embedded_engines(s, host=host, port=port)
+    service = Service(s, host=host, port=port, sessions=sessions, engines=engines)
+    for problem in service.start_engines():
+        console.print(f"[yellow]{problem}[/]")
     console.print(f"ManiEval on http://{host}:{port}  (data: {s.data_dir}, docs: /docs)")
-    Service(s, host=host, port=port, sessions=sessions).run()
+    if engines.registry_domain is not None:
+        console.print(f"registry: {engines.registry_domain}  (manieval push IMAGE --challenge ...)")
+    service.run()
 
 
 def demo(

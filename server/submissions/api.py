@@ -20,8 +20,9 @@ from server.kit.deps import (
     services,
 )
 from server.kit.errors import ERROR_RESPONSES
-from server.kit.schemas import Page
+from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Submission
+from server.submissions.queue import queue_out
 from server.submissions.schemas import (
     EpisodeOut,
     LogsOut,
@@ -97,7 +98,7 @@ def create_submission(body: SubmitIn, request: Request, user: UserDep, db: DBDep
 def my_submissions(
     user: UserDep,
     db: DBDep,
-    challenge: Annotated[str | None, Query(max_length=64)] = None,
+    challenge: Annotated[str | None, Query(max_length=64, pattern=SLUG_PATTERN)] = None,
     page: PageNo = 1,
     per_page: PerPage = 50,
 ) -> Page[SubmissionOut]:
@@ -113,12 +114,15 @@ def my_submissions(
 
 
 @router.get("/submissions/{submission_id}", tags=["submissions"])
-def submission_detail(submission_id: Id, who: CallerDep, db: DBDep) -> SubmissionDetail:
+def submission_detail(
+    submission_id: Id, request: Request, who: CallerDep, db: DBDep
+) -> SubmissionDetail:
     s = get_visible(db, submission_id=submission_id, user=who.user)
     transitions = transitions_of(db, submission_id=s.id)
     rows = task_rows(db, submission=s)
     return SubmissionDetail(
-        **_submission_out(s).model_dump(),
+        **_submission_out(s).model_dump(exclude={"queue"}),
+        queue=queue_out(db, submission=s, settings=services(request).settings),
         transitions=[
             TransitionOut(
                 attempt=t.attempt,

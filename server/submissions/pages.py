@@ -20,6 +20,7 @@ from server.kit.deps import DBDep, Id, services
 from server.kit.errors import Forbidden, NotFound
 from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
 from server.models import EpisodeResultRow, State, Submission, User
+from server.submissions.queue import queue_out
 from server.submissions.service import (
     cancel,
     condition_means,
@@ -103,6 +104,7 @@ def submission_page(
         "submission.html",
         transitions=transitions,
         last_transition=transitions[-1].id if transitions else 0,
+        queue=queue_out(db, submission=s, settings=services(request).settings),
         **outcome(db, s, who, episodes),
     )
 

@@ -45,6 +45,18 @@ class TaskResultOut(BaseModel):
     mean_steps: float
 
 
+class QueueOut(BaseModel):
+    """Where a queued submission stands."""
+
+    position: int = Field(ge=1, description="1: the next one a free worker claims")
+    ahead: int = Field(ge=0, description="submissions claimed before this one")
+    expected_start_s: float | None = Field(
+        description="seconds until it is expected to start, from the evaluations running "
+        "now and the challenges' recent evaluation times; null while unknown"
+    )
+    text: str = Field(description='in words: "3rd in the queue, about 4 min"')
+
+
 class SubmissionOut(BaseModel):
     id: int
     username: str
@@ -64,6 +76,9 @@ class SubmissionOut(BaseModel):
     finished_at: datetime | None
     score: float | None
     progress: dict[str, object] | None
+    queue: QueueOut | None = Field(
+        default=None, description="while queued: its place and expected start"
+    )
 
 
 class SubmissionDetail(SubmissionOut):

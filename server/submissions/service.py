@@ -7,6 +7,7 @@ State changes go through :mod:`server.submissions.states`; work for the queue is
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timedelta
@@ -15,7 +16,8 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import joinedload
 
-from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, QuotaExceeded
+from evaluator.bundled import LOCAL_PREFIX
+from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, QuotaExceeded, Unavailable
 from server.leaderboard.service import refresh
 from server.models import (
     ACTIVE_STATES,
@@ -51,6 +53,37 @@ class Resolved:
 
 Resolver = Callable[[str], Resolved]
 
+
+@dataclass(frozen=True)
+class ImageGate:
+    """A resolver that refuses container images while `refusal()` gives a reason (the
+    embedded default without its engine or registry); bundled ``local:`` policies pass."""
+
+    resolve_image: Resolver
+    refusal: Callable[[], str | None]
+
+    def __call__(self, image: str, *, owner: str | None = None) -> Resolved:
+        if not image.startswith(LOCAL_PREFIX) and (reason := self.refusal()) is not None:
+            raise Unavailable(reason, fields={"image": reason})
+        if owner is None:
+            return self.resolve_image(image)
+        return resolve_as(self.resolve_image, image, owner=owner)
+
+
+def resolve_as(resolve: Resolver, image: str, *, owner: str) -> Resolved:
+    """Resolve for `owner` when the resolver checks whose image it is (the service's own
+    registry: only one's own namespace), else as any resolver."""
+    if "owner" in inspect.signature(resolve).parameters:
+        resolved: Resolved = resolve(image, owner=owner)  # type: ignore[call-arg]
+        return resolved
+    return resolve(image)
+
+
+def images_refused(resolve: Resolver) -> str | None:
+    """Why this server takes no container images now, or None."""
+    return resolve.refusal() if isinstance(resolve, ImageGate) else None
+
+
 SHOWN_WITH = (
     joinedload(Submission.user),
     joinedload(Submission.challenge),
@@ -83,7 +116,7 @@ def submit(
             fields={"phase": f"not open for submissions ({verb})"},
         )
     # Resolve before taking the lock: it talks to the registry.
-    resolved = resolve(image)
+    resolved = resolve_as(resolve, image, owner=user.username)
 
     # Serialise this user's submissions so that two concurrent ones cannot both pass the quota.
     db.execute(select(User.id).where(User.id == user.id).with_for_update())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from datetime import datetime
 from typing import Annotated
 
@@ -14,11 +15,13 @@ from server.kit.deps import DBDep, limit, services
 from server.kit.errors import AppError, Forbidden, Invalid
 from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
 from server.models import Challenge, State, User, utcnow
-from server.submissions.service import list_submissions, quota_use, submit
+from server.registry.tokens import namespace_for
+from server.submissions.service import images_refused, list_submissions, quota_use, submit
 
 router = APIRouter(include_in_schema=False)
 
 MAX_IMAGE_LENGTH = 512  # as the API's SubmitIn
+DEFAULT_CLI_SERVER = "http://127.0.0.1:8000"  # what `manieval` reaches without --server
 PER_PAGE = 50
 PageNo = Annotated[int, Query(ge=1, le=100_000)]
 
@@ -40,7 +43,8 @@ def _form(
         request,
         who,
         "submit.html",
-        status=error.status if error is not None else 200,
+        # The form again with its problem: a page that renders is a 200 (a browser logs any
+        # 4xx as an error); the API keeps its statuses.
         challenge=challenge,
         now=utcnow(),
         quota=quota_use(db, user=user, challenge=challenge, now=utcnow()),
@@ -49,10 +53,61 @@ def _form(
         message=error.message if error is not None else "",
         resets_at=resets_at,
         local_policies=services(request).settings.allow_local_policies,
+        push=push_commands(request, user=user, challenge=challenge),
+        images_refused=images_refused(services(request).resolve),
     )
     if error is not None:
         response.headers.update(error.headers())
     return response
+
+
+@dataclass(frozen=True)
+class PushCommands:
+    """The commands that take this user's policy into the service's registry, filled in."""
+
+    registry: str
+    namespace: str
+    login: str
+    build: list[str]
+    push: str
+    engine_login: str
+    engine_push: str
+    example: str
+
+
+def push_commands(request: Request, *, user: User, challenge: Challenge) -> PushCommands | None:
+    """None when the service runs no registry of its own."""
+    settings = services(request).settings
+    domain = settings.registry_domain
+    if domain is None:
+        return None
+    namespace = namespace_for(user.username) or user.username
+    base = str(request.base_url).rstrip("/")
+    server = "" if base == DEFAULT_CLI_SERVER else f" --server {base}"
+    tls = (
+        " --tls-verify=false" if domain in settings.insecure_registries or _loopback(domain) else ""
+    )
+    tagged = f"{domain}/{namespace}/my-policy:v1"
+    return PushCommands(
+        registry=domain,
+        namespace=namespace,
+        login=f"manieval login -u {user.username}{server}",
+        build=[
+            "docker/policy-base/build.sh  # the base image, once (as root)",
+            "cp -r examples/policy-template my-policy",
+            "cp -r evaluator/sdk/manieval_sdk my-policy/",
+            "podman build -t my-policy:v1 my-policy",
+        ],
+        push=f"manieval push my-policy:v1 --challenge {challenge.slug} --wait{server}",
+        engine_login=f"podman login{tls} -u {user.username} {domain}",
+        engine_push=f"podman push{tls} my-policy:v1 {tagged}",
+        example=tagged,
+    )
+
+
+def _loopback(domain: str) -> bool:
+    host = domain.rsplit(":", 1)[0]
+    return host in ("localhost", "[::1]") or host.startswith("127.")
 
 
 @router.get("/challenges/{slug}/submit")

@@ -104,6 +104,9 @@ def running_server(
             "MANIEVAL_LOGIN_RATE": "1000/minute",
             "MANIEVAL_TOKEN_RATE": "1000/minute",
             "MANIEVAL_SUBMIT_RATE": "1000/minute",
+            # The registry and Podman of the embedded default: tests/cli/test_push.py
+            "MANIEVAL_EMBEDDED_REGISTRY": "false",
+            "MANIEVAL_EMBEDDED_ENGINE": "false",
             "PYTHONUNBUFFERED": "1",
         }
         | dict(extra or {})

@@ -53,3 +53,83 @@ def test_terminal_escapes_in_a_log_are_defused_on_a_terminal_only() -> None:
     log = "ok\n\x1b[2Jcleared\tscreen\n"
     assert render.printable(log, terminal=True) == "ok\n\\x1b[2Jcleared\tscreen\n"
     assert render.printable(log, terminal=False) == log
+
+
+def _queued(queue: dict[str, object] | None) -> dict[str, object]:
+    return {
+        "id": 7,
+        "attempt": 1,
+        "challenge": "maniskill-core",
+        "phase": "dev",
+        "state": "queued",
+        "reason": "waiting for a worker",
+        "progress": None,
+        "queue": queue,
+        "image": "127.0.0.1:5000/alice/p:v1",
+        "pinned_image": "127.0.0.1:5000/alice/p@sha256:" + "0" * 64,
+        "public": True,
+        "created_at": "2026-01-01T12:00:00+00:00",
+        "finished_at": None,
+        "score": None,
+        "description": "",
+    }
+
+
+def test_a_queued_submission_shows_its_place_in_status_and_while_waiting() -> None:
+    from rich.console import Console
+
+    from manieval.follow import LineView
+
+    place = {
+        "position": 3,
+        "ahead": 2,
+        "expected_start_s": 240,
+        "text": "3rd in the queue, about 4 min",
+    }
+    console = Console(record=True, width=200)
+    console.print(render.submission_summary(_queued(place)))
+    assert "queue       3rd in the queue, about 4 min" in console.export_text()
+
+    lines = Console(record=True, width=200)
+    view = LineView(lines)
+    view.show(_queued(place))
+    view.show(_queued(place))  # unchanged: said once
+    view.show(_queued({**place, "position": 2, "text": "2nd in the queue, about 2 min"}))
+    text = lines.export_text()
+    assert text.count("3rd in the queue, about 4 min") == 1
+    assert "submission 7: 2nd in the queue, about 2 min" in text
+    assert render.queue_text(None) == ""
+
+
+def test_the_terminal_board_keeps_the_suites_order_and_marks_ties() -> None:
+    from rich.console import Console
+
+    def row(rank: int | None, user: str, tied: bool = False) -> dict[str, object]:
+        return {
+            "rank": rank,
+            "username": user,
+            "submission_id": 1,
+            "score": 0.5,
+            "tied": tied,
+            "tasks": {t: {"success_rate": 0.5} for t in ("StackCube-v1", "PickCube-v1")},
+            "conditions": {"obs_noise": 0.4, "nominal": 0.5},
+        }
+
+    board = {
+        "challenge": "core",
+        "phase": "dev",
+        "page": 1,
+        "per_page": 50,
+        "total": 3,
+        "tasks": ["StackCube-v1", "PickCube-v1"],  # the suite's order, not the alphabet's
+        "conditions": ["nominal", "obs_noise"],
+        "items": [row(1, "alice"), row(2, "bob", tied=True), row(None, "random")],
+    }
+    console = Console(width=200, record=True)
+    console.print(render.leaderboard_table(board))
+    text = console.export_text()
+    header = next(line for line in text.splitlines() if "rank" in line)
+    assert header.index("StackCube-v1") < header.index("PickCube-v1")
+    assert header.index("nominal") < header.index("obs_noise")
+    assert "=2" in text
+    assert "baseline" in text

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.server.registry_fixture import require_tool
+
 pytestmark = pytest.mark.sim
 
 
@@ -20,7 +22,13 @@ def free_port() -> int:
 
 
 def test_demo_evaluates_the_examples_and_is_idempotent(tmp_path: Path) -> None:
-    env = {**os.environ, "MANIEVAL_DATA_DIR": str(tmp_path)}
+    require_tool("docker-registry")
+    registry = f"127.0.0.1:{free_port()}"
+    env = {
+        **os.environ,
+        "MANIEVAL_DATA_DIR": str(tmp_path),
+        "MANIEVAL_EMBEDDED_REGISTRY_ADDR": registry,
+    }
     command = [
         sys.executable,
         "-m",
@@ -39,6 +47,9 @@ def test_demo_evaluates_the_examples_and_is_idempotent(tmp_path: Path) -> None:
     assert "maniskill-core leaderboard" in first.stdout
     assert first.stdout.count("baseline") == 2
     assert (tmp_path / "demo-password").stat().st_mode & 0o077 == 0
+    # A participant's own policy: the registry it started, and the commands that reach it.
+    assert f"registry: {registry}" in first.stderr
+    assert "manieval push my-policy --challenge maniskill-core --wait" in first.stderr
     command[-1] = str(free_port())
     second = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
     assert second.returncode == 0, second.stderr[-3000:]

@@ -64,7 +64,7 @@ def test_a_bad_image_reference_is_explained_next_to_the_image_field(
     make_user(db, "alice")
     alice = browser(client, "alice")
     r = send(alice, image=image, description="keep me")
-    assert r.status_code == 422  # type: ignore[attr-defined]
+    assert r.status_code == 200  # type: ignore[attr-defined]  # the form again
     html = r.text  # type: ignore[attr-defined]
     assert words in field_error(html, "image") or words in html
     assert re.search(r'id="image"[^>]*aria-invalid="true"', html)
@@ -80,10 +80,10 @@ def test_a_closed_or_unknown_phase_is_explained_next_to_the_phase_field(
     make_user(db, "alice")
     alice = browser(client, "alice")
     closed = send(alice)
-    assert closed.status_code == 409  # type: ignore[attr-defined]
+    assert closed.status_code == 200  # type: ignore[attr-defined]  # the form again
     assert "closed" in field_error(closed.text, "phase")  # type: ignore[attr-defined]
     unknown = send(alice, phase="final")
-    assert unknown.status_code == 422  # type: ignore[attr-defined]
+    assert unknown.status_code == 200  # type: ignore[attr-defined]  # the form again
     assert "one of: dev, test" in field_error(unknown.text, "phase")  # type: ignore[attr-defined]
 
 
@@ -93,7 +93,7 @@ def test_quota_exceeded_says_when_it_resets(client: TestClient, db: Session) -> 
     s = finished(db, alice_user, challenge, [True])
     alice = browser(client, "alice")
     r = send(alice)
-    assert r.status_code == 429  # type: ignore[attr-defined]
+    assert r.status_code == 200  # type: ignore[attr-defined]  # the form again
     html = r.text  # type: ignore[attr-defined]
     assert 'role="alert"' in html
     assert "daily quota of 1" in html

@@ -1,0 +1,161 @@
+"""A real `manieval serve` on embedded defaults with the registry and Podman it starts, and
+the policy template built as its README says: shared by the CLI and the browser tests."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from server.challenges.service import ChallengeOptions, load_challenge
+from server.kit.db import make_engine, session_factory, upgrade
+from server.kit.settings import Settings
+from tests.cli.conftest import REPO, LiveServer, Participant, free_port, running_server
+from tests.server.registry_fixture import require_tool
+from tests.worker.container_fixtures import BASE_BUILD, BASE_IMAGE, CONTAINERS_CONF, require_podman
+
+TEMPLATE = REPO / "examples" / "policy-template"
+SDK = REPO / "evaluator" / "sdk" / "manieval_sdk"
+CHALLENGE = "push-tiny"
+TINY_SUITE = """\
+name: push-tiny
+version: 1
+description: One task, one episode.
+tasks:
+  - {env_id: PickCube-v1, max_episode_steps: 12, episodes: 1}
+phases:
+  dev: {description: Public seeds., seeds: {kind: public, start: 0}}
+conditions:
+  - {name: nominal, params: {kind: nominal}}
+limits:
+  connect_timeout_s: 60
+  first_call_timeout_s: 60
+  call_timeout_s: 5
+  budget_s: 300
+"""
+
+
+@dataclass(frozen=True)
+class Embedded:
+    server: LiveServer
+    registry: str
+    suite: Path
+    work: Path
+
+    def participant(self, name: str) -> Participant:
+        return Participant(self.server.url, self.work / f"config-{name}")
+
+    def engine_env(self, name: str) -> dict[str, str]:
+        """The participant's own Podman (its logins in a file of its own), and the registry
+        the service announces."""
+        return {
+            "REGISTRY_AUTH_FILE": str(self.work / f"auth-{name}.json"),
+        }
+
+
+@contextmanager
+def embedded_service(work: Path) -> Iterator[Embedded]:
+    """`manieval serve` on embedded defaults: it starts the registry and Podman's API."""
+    require_podman()
+    require_tool("docker-registry")
+    built = subprocess.run(
+        [str(BASE_BUILD)],
+        env={**os.environ, "CONTAINERS_CONF": str(CONTAINERS_CONF)},
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert built.returncode == 0, built.stderr[-3000:]
+    data = work / "data"
+    suite = work / "push-tiny.yaml"
+    suite.write_text(TINY_SUITE)
+    settings = Settings(dev_mode=True, data_dir=data, cookie_secure=False)
+    upgrade(settings.resolved_database_url)
+    with session_factory(make_engine(settings.resolved_database_url)).begin() as db:
+        load_challenge(
+            db,
+            suite,
+            ChallengeOptions(quota_per_day=50, quota_concurrent=3),
+            seed_secret=settings.secret("seed_secret"),
+        )
+    registry = f"127.0.0.1:{free_port()}"
+    extra = {
+        "MANIEVAL_EMBEDDED_REGISTRY": "true",
+        "MANIEVAL_EMBEDDED_ENGINE": "true",
+        "MANIEVAL_EMBEDDED_REGISTRY_ADDR": registry,
+    }
+    try:
+        with running_server(data, challenges=False, extra=extra) as server:
+            yield Embedded(server=server, registry=registry, suite=suite, work=work)
+    finally:
+        remove_images(registry, local=BUILT)
+    assert not _alive(data / "registry" / "registry.pid")  # stopped with the server
+    assert not _alive(data / "engine" / "podman.pid")
+
+
+BUILT: list[str] = []  # local tags this module built
+TAG = uuid.uuid4().hex[:8]  # sessions at once on one image store never share a name
+
+
+INSPECT_NAMES = "{{json .RepoTags}} {{json .RepoDigests}}"
+
+
+def remove_images(registry: str, *, local: list[str]) -> None:
+    """Untag what this module built, pushed and pulled, by reference only: other sessions on
+    the same image store may hold images of the same content under their own names."""
+    for reference in local:
+        subprocess.run(["podman", "rmi", reference], capture_output=True, timeout=60)
+    listed = subprocess.run(
+        ["podman", "images", "--format", "{{.ID}} {{.Repository}}"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    ).stdout.splitlines()
+    for image_id in {line.split()[0] for line in listed if f" {registry}/" in line}:
+        names = subprocess.run(
+            ["podman", "image", "inspect", "--format", INSPECT_NAMES, image_id],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        ).stdout.split()
+        references = [r for part in names for r in json.loads(part) if r.startswith(registry)]
+        for reference in references:
+            subprocess.run(["podman", "rmi", reference], capture_output=True, timeout=60)
+
+
+def _alive(pid_file: Path) -> bool:
+    if not pid_file.exists():
+        return False
+    return Path(f"/proc/{pid_file.read_text().strip()}").exists()
+
+
+def build_template(embedded: Embedded, tag: str) -> Path:
+    """What the template's README says: copy it, add the SDK, `podman build`."""
+    context = embedded.work / f"policy-{tag.replace('/', '-').replace(':', '-')}"
+    shutil.copytree(TEMPLATE, context)
+    shutil.copytree(SDK, context / "manieval_sdk", ignore=shutil.ignore_patterns("__pycache__"))
+    done = subprocess.run(
+        [
+            "podman",
+            "build",
+            "--quiet",
+            "--build-arg",
+            f"BASE={BASE_IMAGE}",
+            "-t",
+            tag,
+            str(context),
+        ],
+        env={**os.environ, "CONTAINERS_CONF": str(CONTAINERS_CONF)},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    BUILT.append(tag)
+    return context

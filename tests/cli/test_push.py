@@ -1,0 +1,187 @@
+"""A new participant's path on the embedded default, against a real `manieval serve` with the
+registry and Podman it started: register, log in (the engine too), build the policy template
+with Podman, `manieval push --wait`; and what `manieval push` says when it cannot."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.cli.conftest import Participant, free_port
+from tests.cli.push_support import CHALLENGE, TAG, Embedded, build_template, embedded_service
+
+pytestmark = pytest.mark.sim
+
+
+@pytest.fixture(scope="module")
+def embedded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Embedded]:
+    with embedded_service(tmp_path_factory.mktemp("push")) as service:
+        yield service
+
+
+def registered(embedded: Embedded, name: str) -> tuple[Participant, dict[str, str]]:
+    someone = embedded.participant(name)
+    someone.register(name)
+    env = embedded.engine_env(name)
+    r = someone.run("login", "-u", name, "--password-stdin", input=_password(), env=env)
+    assert r.exit_code == 0, r.output
+    assert f"podman logged in to the registry {embedded.registry} as {name}" in r.output
+    return someone, env
+
+
+def _password() -> str:
+    from tests.factories import PASSWORD
+
+    return PASSWORD + "\n"
+
+
+def test_a_participant_pushes_the_template_and_it_is_ranked(embedded: Embedded) -> None:
+    alice, env = registered(embedded, "alice")
+    context = build_template(embedded, f"localhost/alice-policy:{TAG}")
+    since = time.time() - 5
+
+    started = time.monotonic()
+    r = alice.run(
+        "push", f"localhost/alice-policy:{TAG}", "-c", CHALLENGE, "--wait", "--json", env=env
+    )
+    elapsed = time.monotonic() - started
+    assert r.exit_code == 0, r.output
+    assert (
+        f"pushing localhost/alice-policy:{TAG} to {embedded.registry}/alice/alice-policy:{TAG}"
+        in (r.output)
+    )
+    final = json.loads(r.stdout[r.stdout.index("{") :])
+    assert final["state"] == "succeeded", final
+    pinned = final["pinned_image"]
+    assert pinned.startswith(f"{embedded.registry}/alice/alice-policy@sha256:")
+    print(f"push to succeeded: {elapsed:.1f} s")  # the issue's closing note (-s shows it)
+
+    # The same seeds locally, with `manieval evaluate --policy`, score the same episodes.
+    out = embedded.work / "local.json"
+    local = alice.run(
+        "evaluate", "--policy", str(context), "--suite", str(embedded.suite), "--json", str(out)
+    )
+    assert local.exit_code == 0, local.output
+    doc = json.loads(out.read_text())
+    expected = [
+        (e["seed"], e["success_once"], e["steps"], round(e["episode_return"], 6))
+        for c in doc["conditions"]
+        for t in c["tasks"]
+        for e in t["episodes"]
+    ]
+    token = json.loads((alice.config_dir / "credentials.json").read_text())["token"]
+    with httpx.Client(base_url=embedded.server.url, timeout=30) as http:
+        episodes = http.get(
+            f"/api/v1/submissions/{final['id']}/episodes",
+            headers={"Authorization": f"Bearer {token}"},
+        ).json()["items"]
+        board = http.get(f"/api/v1/challenges/{CHALLENGE}/leaderboard").json()["items"]
+    served = [
+        (e["seed"], e["success_once"], e["steps"], round(e["episode_return"], 6)) for e in episodes
+    ]
+    assert served == expected
+    assert [t["success_rate"] for t in final["tasks"]] == [
+        t["success_rate"] for c in doc["conditions"] for t in c["tasks"]
+    ]
+    assert [(row["username"], row["submission_id"]) for row in board] == [("alice", final["id"])]
+
+    # The engine's word, not the server's: Podman started a container of the pinned image.
+    events = subprocess.run(
+        [
+            "podman",
+            "events",
+            "--stream=false",
+            "--since",
+            str(int(since)),
+            "--filter",
+            "event=start",
+            "--filter",
+            "label=manieval.role=policy",
+            "--format",
+            "{{.Image}}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert pinned in events.stdout.split(), events.stdout + events.stderr
+
+
+def test_status_of_a_pushed_submission_names_its_registry_image(embedded: Embedded) -> None:
+    bob, env = registered(embedded, "bob")
+    build_template(embedded, f"localhost/bob-policy:{TAG}")
+    r = bob.run("push", f"localhost/bob-policy:{TAG}", "-c", CHALLENGE, "--name", "walker", env=env)
+    assert r.exit_code == 0, r.output
+    assert f"{embedded.registry}/bob/walker:{TAG}" in r.output
+    assert "follow it: manieval status" in r.output
+
+
+def test_push_without_an_engine_says_how_to_get_one(embedded: Embedded, tmp_path: Path) -> None:
+    someone = embedded.participant("nobody")
+    r = someone.run("push", "my-policy", "-c", CHALLENGE, env={"PATH": str(tmp_path)})
+    assert r.exit_code == 21, r.output
+    assert "no container engine here" in r.output
+    assert "apt-get install -y podman" in r.output
+
+
+def test_push_of_an_image_that_is_not_there_exits_22(embedded: Embedded) -> None:
+    carol, env = registered(embedded, "carol")
+    r = carol.run("push", f"localhost/never-built:{TAG}", "-c", CHALLENGE, env=env)
+    assert r.exit_code == 22, r.output
+    assert f"podman has no image localhost/never-built:{TAG}" in r.output
+    assert f"podman build -t localhost/never-built:{TAG}" in r.output
+
+
+def test_push_to_a_registry_that_is_down_exits_24(embedded: Embedded) -> None:
+    dave, env = registered(embedded, "dave")
+    build_template(embedded, f"localhost/dave-policy:{TAG}")
+    closed = f"127.0.0.1:{free_port()}"
+    r = dave.run(
+        "push", f"localhost/dave-policy:{TAG}", "-c", CHALLENGE, "--registry", closed, env=env
+    )
+    assert r.exit_code == 24, r.output
+    assert f"the registry {closed} does not answer" in r.output
+
+
+def test_push_with_a_revoked_engine_login_is_refused(embedded: Embedded) -> None:
+    erin, env = registered(embedded, "erin")
+    build_template(embedded, f"localhost/erin-policy:{TAG}")
+    saved = json.loads((erin.config_dir / "credentials.json").read_text())
+    with httpx.Client(base_url=embedded.server.url, timeout=30) as http:
+        fresh = http.post(
+            "/api/v1/auth/token",
+            json={"login": "erin", "password": _password().strip(), "name": "second"},
+        ).json()["token"]
+        r = http.delete(
+            f"/api/v1/tokens/{saved['token_id']}", headers={"Authorization": f"Bearer {fresh}"}
+        )
+        assert r.status_code in (200, 204), r.text
+    # The engine still holds the revoked token: the registry refuses it.
+    r = erin.run(
+        "push",
+        f"localhost/erin-policy:{TAG}",
+        "-c",
+        CHALLENGE,
+        env={**env, "MANIEVAL_TOKEN": fresh},
+    )
+    assert r.exit_code == 23, r.output
+    assert "the registry refused the push" in r.output
+    assert "run manieval login again" in r.output
+
+
+def test_another_users_image_cannot_be_submitted(embedded: Embedded) -> None:
+    frank, env = registered(embedded, "frank")
+    build_template(embedded, f"localhost/frank-policy:{TAG}")
+    r = frank.run("push", f"localhost/frank-policy:{TAG}", "-c", CHALLENGE, "--json", env=env)
+    assert r.exit_code == 0, r.output
+    pinned = json.loads(r.stdout[r.stdout.index("{") :])["pinned_image"]
+    grace, genv = registered(embedded, "grace")
+    r = grace.run("submit", pinned, "-c", CHALLENGE, env=genv)
+    assert r.exit_code == 16, r.output
+    assert "grace/" in r.output
