@@ -81,7 +81,14 @@ def admin_create(
     )
     try:
         with sessions.begin() as db:
-            accounts.register(db, username=username, email=email, password=password, admin=True)
+            accounts.register(
+                db,
+                username=username,
+                email=email,
+                password=password,
+                admin=True,
+                min_score=s.password_min_score,
+            )
     except AppError as exc:
         console.print(f"[red]error:[/] {exc.message}")
         for field, problem in exc.fields.items():

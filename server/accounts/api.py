@@ -16,7 +16,17 @@ from server.accounts.schemas import (
     UserOut,
 )
 from server.kit import security
-from server.kit.deps import SESSION_COOKIE, CallerDep, DBDep, Id, UserDep, limit, services
+from server.kit.deps import (
+    SESSION_COOKIE,
+    CallerDep,
+    DBDep,
+    Id,
+    UserDep,
+    client_ip,
+    limit,
+    login_throttle,
+    services,
+)
 from server.kit.errors import ERROR_RESPONSES, NotFound, Unauthorized
 from server.kit.schemas import Ok
 from server.models import ApiToken, User
@@ -38,18 +48,27 @@ def _user_out(user: User) -> UserOut:
 def register(body: RegisterIn, request: Request, db: DBDep) -> UserOut:
     """Create an account. Rate-limited per client address."""
     limit(request, "register")
-    user = accounts.register(db, username=body.username, email=body.email, password=body.password)
+    user = accounts.register(
+        db,
+        username=body.username,
+        email=body.email,
+        password=body.password,
+        min_score=services(request).settings.password_min_score,
+    )
     db.commit()
     return _user_out(user)
 
 
 def _password_login(request: Request, db: DBDep, body: LoginIn) -> User:
-    """Rate-limited per address and per account name; one message for every failure."""
-    limit(request, "login", key=body.login.strip().lower())
-    user = accounts.authenticate(db, login=body.login, password=body.password)
-    if user is None:
-        raise Unauthorized("wrong username, email or password")
-    return user
+    """Throttled as docs/server.md says; one message for every failure."""
+    limit(request, "login")  # every attempt, per address: bounds the password hashing it costs
+    return accounts.password_login(
+        db,
+        login=body.login,
+        password=body.password,
+        address=client_ip(request),
+        throttle=login_throttle(request),
+    )
 
 
 @router.post("/session")

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Form, Query, Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
 from server.accounts import service as accounts
-from server.kit.deps import SESSION_COOKIE, DBDep, Id, limit, services
-from server.kit.errors import AppError, NotFound
+from server.kit.deps import SESSION_COOKIE, DBDep, Id, client_ip, limit, login_throttle, services
+from server.kit.errors import AppError, NotFound, Unauthorized
 from server.kit.pages import (
     PostedDep,
     Viewer,
@@ -48,17 +48,11 @@ def _login_response(request: Request, db: DB, user: User, next_path: str) -> Res
 
 
 def _form_error(
-    request: Request, who: Viewer, template: str, exc: AppError, **context: object
+    request: Request, who: Viewer, template: str, exc: AppError, **context: Any
 ) -> Response:
-    response = render(
-        request,
-        who,
-        template,
-        status=exc.status,
-        errors=exc.fields,
-        message=exc.message,
-        **context,
-    )
+    """The form again with its problems. A page that renders is a 200 whatever the problem
+    (a browser logs any other status as an error); the API keeps its 4xx statuses."""
+    response = render(request, who, template, errors=exc.fields, message=exc.message, **context)
     response.headers.update(exc.headers())
     return response
 
@@ -84,7 +78,13 @@ def register(
     form = {"username": username, "email": email}
     try:
         limit(request, "register")
-        user = accounts.register(db, username=username, email=email, password=password)
+        user = accounts.register(
+            db,
+            username=username,
+            email=email,
+            password=password,
+            min_score=services(request).settings.password_min_score,
+        )
         db.commit()
     except AppError as exc:
         return _form_error(request, who, "register.html", exc, form=form, next=next)
@@ -110,22 +110,33 @@ def login(
     """Log in by username or email: one message for every failure, as the API."""
     form = {"login": login}
     try:
-        limit(request, "login", key=login.strip().lower())
-    except AppError as exc:
-        return _form_error(request, who, "login.html", exc, form=form, next=next)
-    user = accounts.authenticate(db, login=login, password=password)
-    if user is None:
+        limit(request, "login")  # every attempt, per address: bounds the hashing it costs
+        user = accounts.password_login(
+            db,
+            login=login,
+            password=password,
+            address=client_ip(request),
+            throttle=login_throttle(request),
+        )
+    except Unauthorized:
         return render(
             request,
             who,
             "login.html",
-            status=401,
             errors={},
             message="Wrong username, email or password.",
             form=form,
             next=next,
         )
+    except AppError as exc:
+        return _form_error(request, who, "login.html", exc, form=form, next=next)
     return _login_response(request, db, user, next)
+
+
+@router.get("/logout")
+def logout_form(request: Request, who: ViewerDep) -> Response:
+    """Ask before logging out: a link cannot log anyone out (that takes the form's POST)."""
+    return render(request, who, "logout.html")
 
 
 @router.post("/logout")
@@ -175,7 +186,7 @@ def create_token(request: Request, who: PostedDep, db: DBDep, name: Text = "") -
         db.commit()
     except AppError as exc:
         errors = exc.fields or {"name": exc.message}
-        return _account(request, who, db, status=exc.status, errors=errors, message=exc.message)
+        return _account(request, who, db, errors=errors, message=exc.message)  # a page: 200
     return _account(request, who, db, status=201, new_token=(token, plaintext))
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from datetime import datetime, timedelta
 
 from sqlalchemy import func, select, update
@@ -10,7 +11,8 @@ from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import joinedload
 
 from server.kit import security
-from server.kit.errors import Conflict, Invalid
+from server.kit.errors import Conflict, Invalid, RateLimited, Unauthorized
+from server.kit.ratelimit import Rate, RateLimiter
 from server.models import ApiToken, Session, User, utcnow
 
 MAX_TOKENS_PER_USER = 50
@@ -21,7 +23,15 @@ def normalise_email(email: str) -> str:
     return email.strip().lower()
 
 
-def register(db: DB, *, username: str, email: str, password: str, admin: bool = False) -> User:
+def register(
+    db: DB,
+    *,
+    username: str,
+    email: str,
+    password: str,
+    admin: bool = False,
+    min_score: int = security.DEFAULT_MIN_SCORE,
+) -> User:
     """Create an account, or raise Invalid (field problems) / Conflict (name or email taken)."""
     problems: dict[str, str] = {}
     if (problem := security.validate_username(username)) is not None:
@@ -29,7 +39,9 @@ def register(db: DB, *, username: str, email: str, password: str, admin: bool = 
     email = normalise_email(email)
     if (problem := validate_email(email)) is not None:
         problems["email"] = problem
-    if found := security.password_problems(password, username=username, email=email):
+    if found := security.password_problems(
+        password, username=username, email=email, min_score=min_score
+    ):
         problems["password"] = " ".join(found)
     if problems:
         raise Invalid("the account cannot be created", fields=problems)
@@ -64,12 +76,20 @@ def validate_email(email: str) -> str | None:
     return None
 
 
-def authenticate(db: DB, *, login: str, password: str) -> User | None:
-    """The user whose username or email and password match; same cost whether or not it exists."""
+def find_account(db: DB, *, login: str) -> User | None:
+    """The account a login names, by its username or its email address."""
     login = login.strip()
-    user = db.scalar(
+    return db.scalar(
         select(User).where((User.username == login) | (User.email == normalise_email(login)))
     )
+
+
+def authenticate(db: DB, *, login: str, password: str) -> User | None:
+    """The user whose username or email and password match; same cost whether or not it exists."""
+    return _verify(find_account(db, login=login), password)
+
+
+def _verify(user: User | None, password: str) -> User | None:
     if user is None:
         security.dummy_verify(password)
         return None
@@ -80,9 +100,55 @@ def authenticate(db: DB, *, login: str, password: str) -> User | None:
     return user
 
 
-def set_password(db: DB, user: User, password: str) -> None:
+@dataclass(frozen=True)
+class LoginThrottle:
+    """Where failed logins are counted, and how many each bucket allows (docs/server.md)."""
+
+    limiter: RateLimiter
+    per_address: Rate
+    per_account_address: Rate
+
+
+def password_login(
+    db: DB, *, login: str, password: str, address: str, throttle: LoginThrottle
+) -> User:
+    """The account, or Unauthorized (one message for every failure) / RateLimited.
+
+    OWASP's authentication guidance: failures are counted per (account, address) and per
+    address, never per account alone, so nobody can lock an owner out from elsewhere; the
+    account is resolved first, so its user name and its email share one bucket.
+    """
+    account = find_account(db, login=login)
+    # An unknown name gets a bucket of its own too: answering 429 only for real accounts
+    # would tell which names exist.
+    who = f"user:{account.id}" if account is not None else f"name:{login.strip().casefold()}"
+    buckets = [
+        (f"login-fail:ip:{address}", throttle.per_address),
+        (f"login-fail:{who}:ip:{address}", throttle.per_account_address),
+    ]
+    for key, rate in buckets:
+        decision = throttle.limiter.peek(key, rate)
+        if not decision.allowed:
+            raise RateLimited(
+                "too many failed logins from this address; "
+                f"try again in {decision.retry_after:.0f} s",
+                retry_after=decision.retry_after,
+            )
+    user = _verify(account, password)
+    if user is None:
+        for key, rate in buckets:
+            throttle.limiter.hit(key, rate)
+        raise Unauthorized("wrong username, email or password")
+    return user
+
+
+def set_password(
+    db: DB, user: User, password: str, *, min_score: int = security.DEFAULT_MIN_SCORE
+) -> None:
     """Change a password and end every browser session of the account."""
-    if found := security.password_problems(password, username=user.username, email=user.email):
+    if found := security.password_problems(
+        password, username=user.username, email=user.email, min_score=min_score
+    ):
         raise Invalid("the password is too weak", fields={"password": " ".join(found)})
     user.password_hash = security.hash_password(password)
     db.execute(update(Session).where(Session.user_id == user.id).values(expires_at=utcnow()))

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from fastapi import APIRouter
+from fastapi import Path as FastAPIPath
 
 from server.challenges import service
 from server.challenges.schemas import (
@@ -16,7 +19,7 @@ from server.challenges.schemas import (
 from server.challenges.service import get_challenge, suite_of
 from server.kit.deps import CallerDep, DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
-from server.kit.schemas import Page
+from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Challenge, utcnow
 from server.submissions.service import quota_use
 
@@ -51,7 +54,11 @@ def list_challenges(db: DBDep, page: PageNo = 1, per_page: PerPage = 50) -> Page
 
 
 @router.get("/challenges/{slug}")
-def challenge_detail(slug: str, who: CallerDep, db: DBDep) -> ChallengeOut:
+def challenge_detail(
+    slug: Annotated[str, FastAPIPath(max_length=64, pattern=SLUG_PATTERN)],
+    who: CallerDep,
+    db: DBDep,
+) -> ChallengeOut:
     challenge = get_challenge(db, slug=slug)
     suite = suite_of(challenge)
     quota = None

@@ -14,7 +14,7 @@ from sqlalchemy.orm import sessionmaker
 from server.accounts import service as accounts
 from server.kit import security
 from server.kit.errors import Forbidden, RateLimited, Unauthorized
-from server.kit.ratelimit import RateLimiter
+from server.kit.ratelimit import Rate, RateLimiter
 from server.kit.settings import Settings
 from server.leaderboard.service import LeaderboardCache, RenderedPages
 from server.models import Session, User
@@ -131,6 +131,16 @@ def limit(request: Request, action: str, *, user: User | None = None, key: str =
                 f"too many {action} requests; try again in {decision.retry_after:.0f} s",
                 retry_after=decision.retry_after,
             )
+
+
+def login_throttle(request: Request) -> accounts.LoginThrottle:
+    """Where this server counts failed logins (docs/server.md, Login throttling)."""
+    svc = services(request)
+    return accounts.LoginThrottle(
+        limiter=svc.limiter,
+        per_address=Rate.parse(svc.settings.login_failures_per_address),
+        per_account_address=Rate.parse(svc.settings.login_failures_per_account_address),
+    )
 
 
 PageNo = Annotated[int, Query(ge=1, le=100_000)]

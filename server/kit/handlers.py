@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import logging
+import re
+from collections.abc import Mapping
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -10,9 +13,11 @@ from fastapi.responses import JSONResponse, Response
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from server.kit import pages
 from server.kit.errors import AppError, ErrorBody, ErrorDetail
+from server.kit.limits import RequestGuard
 
 log = logging.getLogger(__name__)
 DATABASE_RETRY_AFTER_S = 5
@@ -30,8 +35,24 @@ TITLES = {
 }
 
 
+_CHOICES = re.compile(r"^\^\(([\w.-]+(?:\|[\w.-]+)+)\)\$$")
+
+
+def readable(error: Mapping[str, Any]) -> str:
+    """A validation problem as people read it: a pattern of choices, `^(asc|desc)$`, says
+    "must be one of: asc, desc" rather than quote the pattern."""
+    if error.get("type") == "string_pattern_mismatch":
+        pattern = str((error.get("ctx") or {}).get("pattern", ""))
+        if (choices := _CHOICES.match(pattern)) is not None:
+            return "must be one of: " + ", ".join(choices.group(1).split("|"))
+        return f"is not in the expected form ({pattern})"
+    return str(error.get("msg", "invalid"))
+
+
 def install_error_handlers(app: FastAPI) -> None:
-    """Render every error, ours, FastAPI's and Starlette's, as the one error body."""
+    """Render every error, ours, FastAPI's and Starlette's, as the one error body; and put the
+    request guard (server/kit/limits.py) in front of everything that reads a request."""
+    app.add_middleware(RequestGuard)
 
     def respond(
         request: Request, status: int, detail: ErrorDetail, headers: dict[str, str] | None = None
@@ -53,7 +74,7 @@ def install_error_handlers(app: FastAPI) -> None:
         fields: dict[str, str] = {}
         for error in exc.errors():
             loc = [str(part) for part in error.get("loc", ()) if part not in ("body", "query")]
-            fields[".".join(loc) or "request"] = str(error.get("msg", "invalid"))
+            fields[".".join(loc) or "request"] = readable(error)
         detail = ErrorDetail(code="invalid", message="the request is not valid", fields=fields)
         return respond(request, 422, detail)
 
@@ -61,7 +82,10 @@ def install_error_handlers(app: FastAPI) -> None:
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
         detail = ErrorDetail(code=code, message=str(exc.detail))
-        return respond(request, exc.status_code, detail, getattr(exc, "headers", None))
+        headers = dict(getattr(exc, "headers", None) or {})
+        if exc.status_code == 405:
+            headers["Allow"] = allowed_methods(request)
+        return respond(request, exc.status_code, detail, headers)
 
     @app.exception_handler(OperationalError)
     @app.exception_handler(InterfaceError)
@@ -82,3 +106,17 @@ def install_error_handlers(app: FastAPI) -> None:
         log.exception("unhandled error", exc_info=exc)
         detail = ErrorDetail(code="internal", message="internal error; it has been logged")
         return respond(request, 500, detail)
+
+
+HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
+def allowed_methods(request: Request) -> str:
+    """Every method some route answers at this path (Starlette's 405 names only the first
+    route's). Asked of the routes themselves, so included routers and pages count too."""
+    allowed = []
+    for method in HTTP_METHODS:
+        scope = {**request.scope, "method": method}
+        if any(route.matches(scope)[0] == Match.FULL for route in request.app.router.routes):
+            allowed.append(method)
+    return ", ".join(allowed)

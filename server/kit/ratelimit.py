@@ -47,6 +47,13 @@ class Rate:
             )
         return cls(int(match[1]), _UNITS[match[2].lower()])
 
+    @staticmethod
+    def checked(text: object) -> object:
+        """`text` unchanged when it is a valid rate, else ValueError (a settings validator)."""
+        if isinstance(text, str):
+            Rate.parse(text)
+        return text
+
     @property
     def interval(self) -> float:
         """Seconds between two hits once the burst is spent."""
@@ -66,6 +73,10 @@ class RateLimiter(Protocol):
 
     def hit(self, key: str, rate: Rate) -> Decision:
         """Count one hit on `key` if `rate` allows it (a refused hit is not counted)."""
+        ...
+
+    def peek(self, key: str, rate: Rate) -> Decision:
+        """Whether a hit on `key` would be allowed now, without counting one."""
         ...
 
     def reset(self) -> None:
@@ -110,6 +121,12 @@ class MemoryRateLimiter:
                     self._prune(now)
             return decision
 
+    def peek(self, key: str, rate: Rate) -> Decision:
+        """Whether a hit on `key` would be allowed now, without counting one."""
+        with self._lock:
+            decision, _ = _gcra(self._tats.get(key), self._clock(), rate)
+            return decision
+
     def _prune(self, now: float) -> None:
         # A key whose TAT has passed behaves exactly like a key never seen, so it can go. Pruning
         # when the table has doubled keeps memory within twice the live keys, at O(1) per hit.
@@ -130,10 +147,12 @@ class MemoryRateLimiter:
 # Times in microseconds on the Redis server's clock, so API processes on several hosts agree.
 # A number passed to redis.call would be formatted with 14 significant digits, too few for
 # microseconds since 1970, hence the explicit %.17g. Returns {1, 0} when allowed and
-# {0, microseconds to wait} when refused; the key expires when its TAT passes.
+# {0, microseconds to wait} when refused; the key expires when its TAT passes. With ARGV[3] = 1
+# only the decision is returned and nothing is stored (a peek).
 _GCRA_LUA = """
 local limit = tonumber(ARGV[1])
 local period = tonumber(ARGV[2])
+local dry = ARGV[3] == '1'
 local clock = redis.call('TIME')
 local now = tonumber(clock[1]) * 1000000 + tonumber(clock[2])
 local tat = tonumber(redis.call('GET', KEYS[1]) or now)
@@ -143,6 +162,7 @@ local wait = new_tat - period - now
 if wait > 1 then
   return {0, math.ceil(wait)}
 end
+if dry then return {1, 0} end
 local ttl = string.format('%d', math.ceil((new_tat - now) / 1000))
 redis.call('SET', KEYS[1], string.format('%.17g', new_tat), 'PX', ttl)
 return {1, 0}
@@ -161,8 +181,16 @@ class RedisRateLimiter:
 
     def hit(self, key: str, rate: Rate) -> Decision:
         """Count one hit on `key` if `rate` allows it; Redis errors propagate to the caller."""
+        return self._run(key, rate, dry=False)
+
+    def peek(self, key: str, rate: Rate) -> Decision:
+        """Whether a hit on `key` would be allowed now, without counting one."""
+        return self._run(key, rate, dry=True)
+
+    def _run(self, key: str, rate: Rate, *, dry: bool) -> Decision:
         allowed, wait_us = self._script(
-            keys=[self._prefix + key], args=[rate.limit, rate.period_seconds * 1_000_000]
+            keys=[self._prefix + key],
+            args=[rate.limit, rate.period_seconds * 1_000_000, "1" if dry else "0"],
         )
         return Decision(allowed=bool(allowed), retry_after=int(wait_us) / 1_000_000)
 

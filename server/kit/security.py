@@ -16,6 +16,7 @@ from typing import Literal
 
 from argon2 import PasswordHasher, Type
 from argon2.exceptions import InvalidHashError, VerificationError
+from zxcvbn import zxcvbn
 
 # --- Passwords -----------------------------------------------------------------------------------
 
@@ -29,6 +30,9 @@ _HASHER = PasswordHasher(
 
 MIN_PASSWORD_LENGTH = 10
 MAX_PASSWORD_LENGTH = 256
+DEFAULT_MIN_SCORE = 3
+"""zxcvbn's "safely unguessable: moderate protection from offline slow-hash scenario"."""
+ZXCVBN_MAX_LENGTH = 72
 
 
 def _password_bytes(password: str) -> bytes:
@@ -72,7 +76,13 @@ def dummy_verify(password: str) -> None:
     verify_password(_dummy_hash(), password)
 
 
-def password_problems(password: str, *, username: str | None, email: str | None) -> list[str]:
+def password_problems(
+    password: str,
+    *,
+    username: str | None,
+    email: str | None,
+    min_score: int = DEFAULT_MIN_SCORE,
+) -> list[str]:
     """Why `password` is too weak for this account, one sentence per problem; empty when fine."""
     normalized = unicodedata.normalize("NFKC", password)
     folded = normalized.casefold()
@@ -93,7 +103,28 @@ def password_problems(password: str, *, username: str | None, email: str | None)
             "This is one of the most common passwords (or one with digits or symbols added), "
             "which attackers try first; choose a less predictable one."
         )
+    if not problems and len(normalized) <= MAX_PASSWORD_LENGTH:
+        problems.extend(_strength_problems(normalized, [username or "", local_part], min_score))
     return problems
+
+
+def _strength_problems(password: str, user_inputs: list[str], min_score: int) -> list[str]:
+    # zxcvbn estimates the guesses an attacker needs (dictionaries, keyboard patterns, dates,
+    # l33t substitutions, repeats, sequences) and says why in words: that reason is shown.
+    # zxcvbn's cost grows quickly with length, so it refuses more than 72 characters: the first
+    # 72 are judged, and a password is never weaker than a prefix of it.
+    estimate = zxcvbn(
+        password[:ZXCVBN_MAX_LENGTH], user_inputs=[text for text in user_inputs if text]
+    )
+    if estimate["score"] >= min_score:
+        return []
+    feedback = estimate["feedback"]
+    reasons = [str(feedback.get("warning") or "")] + [str(s) for s in feedback["suggestions"]]
+    return [
+        f"This password is too easy to guess (strength {estimate['score']} of 4, "
+        f"at least {min_score} needed).",
+        *(reason for reason in reasons if reason),
+    ]
 
 
 _TRAILING_NOISE = string.digits + string.punctuation + string.whitespace
@@ -154,14 +185,18 @@ admin manieval maniskill
 
 # --- Usernames -----------------------------------------------------------------------------------
 
-_USERNAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
+# A registry repository's path component (the OCI distribution grammar, without '.'), since a
+# username is its owner's namespace in the service's registry: separators only between letters
+# and digits.
+USERNAME_GRAMMAR = r"[a-z0-9]+(?:(?:_|__|-+)[a-z0-9]+)*"
+_USERNAME = re.compile(USERNAME_GRAMMAR)
 
 # Names that would let an account pass for the service, its staff, or a URL of the site.
 RESERVED_USERNAMES = frozenset(
     """
 admin administrator root superuser sudo system sysadmin api www web mail email postmaster
 hostmaster webmaster abuse security support help info contact staff team moderator mod official
-manieval maniskill null none undefined anonymous guest nobody everyone me self user users account
+manieval manieval-puller maniskill null none undefined anonymous guest nobody everyone me self user users account
 accounts login logout signin signup register settings profile dashboard static assets docs status
 health challenges submissions leaderboard leaderboards new edit delete
 """.split()
@@ -175,7 +210,7 @@ def validate_username(name: str) -> str | None:
     if not _USERNAME.fullmatch(name):
         return (
             "A username may contain only lowercase letters a-z, digits, '-' and '_', "
-            "and must start with a letter or a digit."
+            "must start and end with a letter or a digit, and may not have '_' next to '-'."
         )
     if name in RESERVED_USERNAMES:
         return "This username is reserved; choose another."

@@ -97,6 +97,14 @@ def hits(limiter: RateLimiter, key: str, rate: Rate, n: int) -> list[bool]:
     return [limiter.hit(key, rate).allowed for _ in range(n)]
 
 
+def test_memory_peek_counts_nothing(memory: MemoryRateLimiter):
+    rate = Rate(2, 60)
+    assert all(memory.peek("k", rate).allowed for _ in range(10))
+    assert hits(memory, "k", rate, 2) == [True, True]
+    assert memory.peek("k", rate) == Decision(allowed=False, retry_after=30.0)
+    assert memory.peek("other", rate).allowed
+
+
 def test_memory_allows_a_burst_of_limit_hits_then_refuses(memory: MemoryRateLimiter):
     assert hits(memory, "k", Rate(3, 60), 3) == [True, True, True]
     assert memory.hit("k", Rate(3, 60)) == Decision(allowed=False, retry_after=20.0)
@@ -282,6 +290,16 @@ def test_redis_allows_a_burst_of_limit_hits_then_refuses(shared: RedisRateLimite
     refused = shared.hit("k", Rate(3, 60))
     assert not refused.allowed
     assert 19.9 < refused.retry_after <= 20.0
+
+
+def test_redis_peek_counts_nothing(shared: RedisRateLimiter):
+    rate = Rate(2, 60)
+    assert all(shared.peek("k", rate).allowed for _ in range(10))
+    assert hits(shared, "k", rate, 2) == [True, True]
+    refused = shared.peek("k", rate)
+    assert not refused.allowed
+    assert 29.9 < refused.retry_after <= 30.0
+    assert shared.peek("other", rate).allowed
 
 
 def test_redis_allowed_hits_have_no_retry_after(shared: RedisRateLimiter):

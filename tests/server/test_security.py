@@ -177,7 +177,7 @@ def test_the_common_password_list_is_casefolded():
 # --- Usernames -----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["ada", "robot-lab_2", "0day", "a" * 32, "x_-"])
+@pytest.mark.parametrize("name", ["ada", "robot-lab_2", "0day", "a" * 32, "a__b", "a--b"])
 def test_a_valid_username_has_no_problem(name: str):
     assert security.validate_username(name) is None
 
@@ -188,7 +188,24 @@ def test_a_username_must_be_3_to_32_characters(name: str):
 
 
 @pytest.mark.parametrize(
-    "name", ["Ada", "-ada", "_ada", "ada lovelace", "ada\n", "ádá", "\uff41\uff44\uff41", "ada@x"]
+    "name",
+    [
+        "Ada",
+        "-ada",
+        "_ada",
+        "ada lovelace",
+        "ada\n",
+        "ádá",
+        "\uff41\uff44\uff41",
+        "ada@x",
+        # Not a registry namespace (the OCI grammar): the user could push nothing.
+        "ada_",
+        "ada-",
+        "x_-",
+        "a_-b",
+        "a___b",
+        "a.b",
+    ],
 )
 def test_a_username_is_lowercase_ascii_letters_digits_dash_and_underscore(name: str):
     problem = security.validate_username(name)
@@ -196,7 +213,7 @@ def test_a_username_is_lowercase_ascii_letters_digits_dash_and_underscore(name: 
     assert problem.startswith("A username may contain only")
 
 
-@pytest.mark.parametrize("name", ["admin", "root", "api", "system", "manieval"])
+@pytest.mark.parametrize("name", ["admin", "root", "api", "system", "manieval", "manieval-puller"])
 def test_a_reserved_username_is_refused(name: str):
     assert security.validate_username(name) == "This username is reserved; choose another."
 

@@ -44,7 +44,7 @@ def test_registration_problems_are_shown_next_to_their_field(
     client: TestClient, fields: dict[str, str], field: str, words: str
 ) -> None:
     r = register(browser(client), **fields)
-    assert r.status_code == 422  # type: ignore[attr-defined]
+    assert r.status_code == 200  # type: ignore[attr-defined]  # the form again, not an error
     html = r.text  # type: ignore[attr-defined]
     error = re.search(rf'<p class="field-error" id="{field}-error">([^<]*)</p>', html)
     assert error
@@ -57,7 +57,7 @@ def test_registration_problems_are_shown_next_to_their_field(
 def test_a_taken_username_is_a_conflict_on_its_field(client: TestClient, db: Session) -> None:
     make_user(db, "alice")
     r = register(browser(client), email="other@example.org")
-    assert r.status_code == 409  # type: ignore[attr-defined]
+    assert r.status_code == 200  # type: ignore[attr-defined]
     assert 'id="username-error">already taken' in r.text  # type: ignore[attr-defined]
 
 
@@ -69,7 +69,7 @@ def test_login_failures_say_one_thing_and_success_follows_next(
     for login in ("alice", "nobody"):
         token = csrf_of(visitor.get("/login").text)
         r = visitor.post("/login", data={"csrf_token": token, "login": login, "password": "x" * 12})
-        assert r.status_code == 401
+        assert r.status_code == 200  # the form again: a browser logs any 4xx as an error
         assert "Wrong username, email or password." in r.text
     token = csrf_of(visitor.get("/login").text)
     ok = visitor.post(
@@ -153,7 +153,7 @@ def test_token_problems_are_shown_by_the_name_field_and_others_tokens_are_404(
     r = alice.post(
         "/account/tokens", data={"csrf_token": csrf_of(alice.get("/account").text), "name": " "}
     )
-    assert r.status_code == 422
+    assert r.status_code == 200
     assert 'id="name-error"' in r.text
     created = alice.post(
         "/account/tokens", data={"csrf_token": csrf_of(alice.get("/account").text), "name": "a"}
