@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from datetime import datetime, timedelta
+from datetime import UTC, datetime, timedelta
 
 
 @dataclass(frozen=True)
@@ -132,6 +132,7 @@ class StepChart:
 
 STEP_WIDTH, STEP_HEIGHT = 640, 220
 MARGIN_LEFT, MARGIN_RIGHT, MARGIN_TOP, MARGIN_BOTTOM = 44, 16, 12, 28
+MIN_SPAN = timedelta(hours=1)  # the narrowest time axis drawn
 
 
 def step_chart(
@@ -141,13 +142,15 @@ def step_chart(
     baselines: Sequence[tuple[str, float, datetime]] = (),
 ) -> StepChart | None:
     """The best score as a step line from the first record until `now`, and each baseline
-    (name, score, submitted at) as a level line; None when there is neither."""
+    (name, score, submitted at) as a level line; None when there is neither.
+
+    The time axis (UTC) ends at `now` (or at the last point, should one be later) and never
+    beyond: a short history is widened to `MIN_SPAN` into the past, not into the future."""
     if not records and not baselines:
         return None
-    start = min([p.at for p in records] + [at for _, _, at in baselines])
-    end = max([now] + [p.at for p in records])
-    if end - start < timedelta(hours=1):
-        end = start + timedelta(hours=1)
+    times = [p.at for p in records] + [at for _, _, at in baselines]
+    end = max([now, *times])
+    start = min([*times, end - MIN_SPAN])
     span = (end - start).total_seconds()
     right, bottom = STEP_WIDTH - MARGIN_RIGHT, STEP_HEIGHT - MARGIN_BOTTOM
 
@@ -175,7 +178,7 @@ def step_chart(
         bottom=bottom,
         path=path,
         markers=markers,
-        x_ticks=[(x(at), at.strftime(fmt)) for at in ticks],
+        x_ticks=[(x(at), at.astimezone(UTC).strftime(fmt)) for at in ticks],
         y_ticks=[(y(f), f"{f:.2f}") for f in (0, 0.25, 0.5, 0.75, 1)],
         baselines=[(y(score), name) for name, score, _ in baselines],
     )

@@ -13,9 +13,11 @@ from fastapi.responses import RedirectResponse, Response
 from sqlalchemy.orm import Session as DB
 
 from server.challenges.charts import StepChart, best_over_time, step_chart
+from server.challenges.prose import markdown, markdown_inline, summary
 from server.challenges.service import all_challenges, get_challenge, shown_phase, suite_of
 from server.kit.deps import DBDep, services
 from server.kit.pages import ViewerDep, render
+from server.leaderboard.columns import board_columns
 from server.leaderboard.service import baseline_points, record_points
 from server.models import Phase, utcnow
 from server.submissions.service import quota_use
@@ -33,7 +35,16 @@ def home(request: Request, who: ViewerDep, db: DBDep) -> Response:
     challenges = all_challenges(db)
     open_now = [c for c in challenges if any(p.is_open(now) for p in c.phases)]
     others = [c for c in challenges if c not in open_now]
-    return render(request, who, "home.html", open_now=open_now, others=others, now=now)
+    summaries = {c.slug: summary(c.description) for c in challenges}
+    return render(
+        request,
+        who,
+        "home.html",
+        open_now=open_now,
+        others=others,
+        now=now,
+        summaries=summaries,
+    )
 
 
 @router.get("/favicon.ico")
@@ -53,12 +64,17 @@ def challenge_page(
         quota_use(db, user=who.user, challenge=challenge, now=now) if who.user is not None else None
     )
     board = services(request).leaderboards.page(db, phase_id=shown.id, page=1, per_page=TOP_ROWS)
+    suite = suite_of(challenge)
     return render(
         request,
         who,
         "challenge.html",
         challenge=challenge,
-        suite=suite_of(challenge),
+        description=markdown(challenge.description),
+        phase_notes={name: markdown_inline(p.description) for name, p in suite.phases.items()},
+        suite=suite,
+        tasks=[t.env_id for t in suite.tasks],
+        columns=board_columns([t.env_id for t in suite.tasks], []),
         phase=shown,
         now=now,
         quota=quota,

@@ -57,7 +57,8 @@ def load_challenge(
     if challenge is None:
         challenge = Challenge(slug=suite.name)
         db.add(challenge)
-    challenge.title = options.title or _title(suite)
+    # A suite's own `title` (when its schema has one) wins over the name made readable.
+    challenge.title = options.title or display_title(suite.name, suite.title or None)
     challenge.description = options.description or suite.description
     challenge.suite_yaml = suite_yaml
     challenge.suite_hash = suite.sha256()
@@ -88,8 +89,27 @@ def _bundled_text(ref: str | Path) -> str:
     return (SUITES_DIR / f"{ref}.yaml").read_text()
 
 
-def _title(suite: Suite) -> str:
-    return suite.name.replace("-", " ").replace("_", " ").title()
+# Words a suite's name spells in lower case that are written otherwise (brands, acronyms).
+KNOWN_WORDS = {
+    "maniskill": "ManiSkill",
+    "maniskill2": "ManiSkill2",
+    "maniskill3": "ManiSkill3",
+    "sapien": "SAPIEN",
+    "ycb": "YCB",
+    "rgb": "RGB",
+    "rgbd": "RGBD",
+    "cpu": "CPU",
+    "gpu": "GPU",
+}
+
+
+def display_title(name: str, declared: str | None = None) -> str:
+    """The title a suite declares, else its name made readable: "maniskill-core" reads
+    "ManiSkill Core"; known brands keep their casing and other words only gain a capital."""
+    if declared:
+        return declared
+    words = name.replace("_", " ").replace("-", " ").split()
+    return " ".join(KNOWN_WORDS.get(w, w[:1].upper() + w[1:]) for w in words)
 
 
 def suite_of(challenge: Challenge) -> Suite:

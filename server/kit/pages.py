@@ -30,7 +30,8 @@ from server.accounts import service as accounts
 from server.kit import security
 from server.kit.db import ROOT
 from server.kit.deps import SESSION_COOKIE, DBDep, services
-from server.kit.errors import ErrorDetail, Forbidden
+from server.kit.errors import ErrorDetail, Forbidden, Invalid
+from server.kit.schemas import text_problem
 from server.models import Session, User
 
 WEB_DIR = ROOT / "web"
@@ -43,6 +44,7 @@ ANONYMOUS_FORMS = frozenset({"/login", "/register"})
 MACHINE_PATHS = (
     "/api/",
     "/internal/",
+    "/registry/",
     "/healthz",
     "/readyz",
     "/metrics",
@@ -150,16 +152,19 @@ def viewer(request: Request, db: DBDep) -> Viewer:
 ViewerDep = Annotated[Viewer, Depends(viewer)]
 
 
-def posted(request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] = "") -> Viewer:
+async def posted(
+    request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] = ""
+) -> Viewer:
     """The viewer of a form POST, whose CSRF token must match the session, or on the login and
     register forms the form cookie (a form loaded before logging in elsewhere); otherwise 403
-    and nothing is done."""
+    and nothing is done. Every field must be text the server can store (else 422)."""
     key = services(request).csrf_key
-    if who.session is not None and security.csrf_valid(csrf_token, who.session.digest, key):
-        return who
     nonce = request.cookies.get(FORM_COOKIE)
     anonymous_form = request.url.path in ANONYMOUS_FORMS
-    if anonymous_form and nonce and security.csrf_valid(csrf_token, _form_digest(nonce), key):
+    if (who.session is not None and security.csrf_valid(csrf_token, who.session.digest, key)) or (
+        anonymous_form and nonce and security.csrf_valid(csrf_token, _form_digest(nonce), key)
+    ):
+        await _check_form_text(request)
         return who
     raise Forbidden(
         "This form's security token is missing or out of date. "
@@ -168,6 +173,19 @@ def posted(request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] 
 
 
 PostedDep = Annotated[Viewer, Depends(posted)]
+
+
+async def _check_form_text(request: Request) -> None:
+    # One check for every form, as `server/kit/schemas.py` does for every JSON body. The form is
+    # already parsed (FastAPI parses it once, for the route's fields), so this reads no body.
+    form = await request.form()
+    problems = {
+        name: problem
+        for name, value in form.multi_items()
+        if isinstance(value, str) and (problem := text_problem(value, multiline=True))
+    }
+    if problems:
+        raise Invalid("the form holds characters that cannot be stored", fields=problems)
 
 
 class LoginRequired(Exception):
@@ -195,11 +213,13 @@ def safe_next(path: str | None, default: str = "/") -> str:
     """A local path to go to after logging in; anything else (another site) is ignored."""
     if not path or not path.startswith("/") or path.startswith("//") or "\\" in path:
         return default
-    if any(ord(c) <= 0x20 or ord(c) == 0x7F for c in path):
+    if any(ord(c) <= 0x20 or ord(c) == 0x7F for c in path) or text_problem(path) is not None:
         return default  # browsers drop tabs and newlines: "/\t/evil.example" is "//evil.example"
     if urlsplit(path).netloc:
         return default
-    return path
+    # A header holds Latin-1 only: other characters ("/\u2215/x") go percent-encoded, which
+    # keeps the path local (an encoded character is never a slash to a browser).
+    return quote(path, safe="/?#&=+%:;@,!$'()*~")
 
 
 def redirect(url: str) -> Response:
@@ -228,7 +248,10 @@ def render(
 
 def error_page(request: Request, status: int, title: str, detail: ErrorDetail) -> HTMLResponse:
     """The HTML twin of the API's error body, for pages (no database access: it may be down)."""
-    return render(request, None, "error.html", status=status, title=title, detail=detail)
+    signed_in = bool(request.cookies.get(SESSION_COOKIE))  # a guess: the database may be down
+    return render(
+        request, None, "error.html", status=status, title=title, detail=detail, signed_in=signed_in
+    )
 
 
 def wants_html(request: Request) -> bool:
@@ -241,5 +264,6 @@ def install(app: FastAPI, routers: Iterable[APIRouter]) -> None:
     """Serve the pages of `routers` and their static files from `app`."""
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     app.add_exception_handler(LoginRequired, login_redirect)
-    for router in routers:
+    app.state.page_routers = list(routers)  # what the pages serve, for checks over every form
+    for router in app.state.page_routers:
         app.include_router(router)

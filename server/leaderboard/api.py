@@ -12,8 +12,9 @@ from starlette.concurrency import run_in_threadpool
 
 from server.kit.deps import PageNo, PerPage, Services, services
 from server.kit.errors import ERROR_RESPONSES
+from server.kit.schemas import SLUG_PATTERN
 from server.leaderboard.schemas import LeaderboardOut, LeaderboardRowOut
-from server.leaderboard.service import PageKey, Rendered, board_version
+from server.leaderboard.service import PageKey, Rendered, board_version, column_order
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
 
@@ -25,14 +26,19 @@ router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
     responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}}}},
 )
 async def leaderboard(
-    slug: Annotated[str, FastAPIPath(max_length=64)],
+    slug: Annotated[str, FastAPIPath(max_length=64, pattern=SLUG_PATTERN)],
     request: Request,
     phase: Annotated[str, Query(max_length=32)] = "dev",
     page: PageNo = 1,
     per_page: PerPage = 50,
     format: Literal["json", "csv"] = "json",
 ) -> Response:
-    """Best public submission per user, by score (ties: the earlier submission first).
+    """Best public submission per user, by score (equal scores: the earlier submission first).
+
+    Each row carries its score's 95% interval and `tied`: whether that interval overlaps the
+    one of the ranked row above (docs/metrics.md, "How ties are decided"). `tasks` and
+    `conditions` list the suite's in its order, which every row's dictionaries and the CSV's
+    columns follow.
 
     The most read page of the service: rendered bytes are cached per board version and
     re-validated against the database at most every `MANIEVAL_LEADERBOARD_MAX_AGE` seconds, so
@@ -53,13 +59,19 @@ def _render_leaderboard(svc: Services, key: PageKey) -> Rendered:
         if (same := svc.leaderboard_pages.revalidate(key, version)) is not None:
             return same
         board = svc.leaderboards.page(db, phase_id=phase_id, page=page, per_page=per_page)
+        tasks, conditions = column_order(db, slug=slug)
     out = LeaderboardOut(
         challenge=slug,
         phase=phase,
         page=page,
         per_page=per_page,
         total=board.total,
-        items=[LeaderboardRowOut(**row.__dict__) for row in board.rows],
+        tasks=tasks,
+        conditions=conditions,
+        items=[
+            LeaderboardRowOut(**row.in_order(tasks=tasks, conditions=conditions).__dict__)
+            for row in board.rows
+        ],
     )
     if format == "csv":
         rendered = Rendered(
@@ -77,11 +89,12 @@ def _render_leaderboard(svc: Services, key: PageKey) -> Rendered:
 
 
 def _leaderboard_csv(board: LeaderboardOut) -> str:
-    tasks = sorted({env for row in board.items for env in row.tasks})
-    conditions = sorted({c for row in board.items for c in row.conditions})
+    """The page as CSV, tasks and conditions in the suite's order (as on the web)."""
+    tasks, conditions = board.tasks, board.conditions
     buf = io.StringIO()
     writer = csv.writer(buf)
-    header = ["rank", "username", "baseline", "score", "submitted_at", "submission_id"]
+    header = ["rank", "username", "baseline", "score", "score_ci_low", "score_ci_high", "tied"]
+    header += ["submitted_at", "submission_id"]
     header += [f"{t} success" for t in tasks] + [f"{t} ci_low" for t in tasks]
     header += [f"{t} ci_high" for t in tasks] + [f"condition {c}" for c in conditions]
     writer.writerow(header)
@@ -91,6 +104,9 @@ def _leaderboard_csv(board: LeaderboardOut) -> str:
             _csv_safe(row.username),
             row.baseline,
             f"{row.score:.4f}",
+            f"{row.score_ci_low:.4f}" if row.score_ci_low is not None else "",
+            f"{row.score_ci_high:.4f}" if row.score_ci_high is not None else "",
+            row.tied,
             row.submitted_at.isoformat(),
             row.submission_id,
         ]

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
@@ -12,19 +11,13 @@ from sqlalchemy.orm import Session as DB
 from server.challenges.service import get_challenge, shown_phase, suite_of
 from server.kit.deps import DBDep, services
 from server.kit.pages import ViewerDep, render
+from server.leaderboard.columns import board_columns
 from server.leaderboard.service import Row
 from server.models import Phase
 
 router = APIRouter(include_in_schema=False)
 
 SORT_LIMIT = 2000  # rows a sorted view reads; boards are ranked by score beyond that
-
-
-@dataclass(frozen=True)
-class Column:
-    key: str  # the sort key: score, user, submitted, task:<env_id>, cond:<name>
-    label: str
-    numeric: bool = True
 
 
 def _value(row: Row, key: str) -> Any:
@@ -62,7 +55,7 @@ def leaderboard_page(
     suite = suite_of(challenge)
     tasks = [t.env_id for t in suite.tasks]
     stresses = [c.name for c in suite.conditions[1:]]
-    columns = _columns(tasks, stresses)
+    columns = board_columns(tasks, stresses)
     if sort not in {c.key for c in columns}:
         sort = "rank"
     descending = dir == "desc" if dir else sort not in ("user", "rank")
@@ -85,13 +78,6 @@ def leaderboard_page(
         descending=descending,
         truncated=sort != "rank" and total >= SORT_LIMIT,
     )
-
-
-def _columns(tasks: list[str], stresses: list[str]) -> list[Column]:
-    columns = [Column("user", "Participant", numeric=False), Column("score", "Score")]
-    columns += [Column(f"task:{t}", t) for t in tasks]
-    columns += [Column(f"cond:{c}", c) for c in stresses]
-    return [*columns, Column("submitted", "Submitted", numeric=False)]
 
 
 def _rows(

@@ -4,22 +4,40 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from server.kit.schemas import Page
 
 
 class LeaderboardRowOut(BaseModel):
-    rank: int | None
+    rank: int | None = Field(description="1 for the best score; null for a baseline (unranked).")
     username: str
     submission_id: int
     baseline: bool
     score: float
     submitted_at: datetime
-    conditions: dict[str, float]
-    tasks: dict[str, dict[str, float]]
+    conditions: dict[str, float] = Field(
+        description="Mean success rate per condition, in the suite's order."
+    )
+    tasks: dict[str, dict[str, float]] = Field(
+        description="Success rate and its 95% interval per task (first condition), in the "
+        "suite's order."
+    )
+    score_ci_low: float | None = Field(
+        default=None,
+        description="The score's 95% Wilson interval over the first condition's episodes "
+        "pooled; null only for a submission with no results.",
+    )
+    score_ci_high: float | None = Field(default=None, description="The interval's upper end.")
+    tied: bool = Field(
+        default=False,
+        description="Statistically tied with the ranked row above: the 95% intervals of their "
+        "scores overlap (docs/metrics.md, Ties).",
+    )
 
 
 class LeaderboardOut(Page[LeaderboardRowOut]):
     challenge: str
     phase: str
+    tasks: list[str] = Field(description="The suite's tasks, in its order: the column order.")
+    conditions: list[str] = Field(description="The suite's conditions, in its order.")

@@ -12,15 +12,17 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from datetime import datetime
-from typing import Any
+from typing import Any, TypeVar
 
-from sqlalchemy import and_, delete, func, select, update
+from sqlalchemy import and_, delete, func, or_, select, update
 from sqlalchemy.orm import Session as DB
 
+from evaluator.stats import wilson_interval
 from server.challenges.charts import ScorePoint
-from server.challenges.service import get_challenge, get_phase
+from server.challenges.service import get_challenge, get_phase, suite_of
 from server.kit.errors import NotFound
 from server.models import (
     Challenge,
@@ -31,6 +33,8 @@ from server.models import (
     TaskResultRow,
     User,
 )
+
+V = TypeVar("V")
 
 
 def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
@@ -95,6 +99,7 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
     conditions: dict[str, list[float]] = {}
     tasks: dict[str, dict[str, float]] = {}
     first: str | None = None
+    successes = episodes = 0
     for row in rows:
         first = first or row.condition
         conditions.setdefault(row.condition, []).append(row.success_rate)
@@ -104,9 +109,13 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
                 "ci_low": row.ci_low,
                 "ci_high": row.ci_high,
             }
+            successes += row.successes
+            episodes += row.episodes
     return {
         "conditions": {name: sum(v) / len(v) for name, v in conditions.items()},
         "tasks": tasks,
+        # The score's 95% interval: Wilson over the first condition's episodes pooled.
+        "score_interval": list(wilson_interval(successes, episodes)) if rows else None,
     }
 
 
@@ -122,6 +131,12 @@ def board_version(db: DB, *, slug: str, phase: str) -> tuple[int, int]:
         get_phase(get_challenge(db, slug=slug), phase)  # raises the precise 404 / 422
         raise NotFound(f"no phase {phase!r}")  # pragma: no cover - raced with a delete
     return found[0], found[1]
+
+
+def column_order(db: DB, *, slug: str) -> tuple[list[str], list[str]]:
+    """The challenge's tasks and conditions in its suite's order: every board's column order."""
+    suite = suite_of(get_challenge(db, slug=slug))
+    return [t.env_id for t in suite.tasks], [c.name for c in suite.conditions]
 
 
 def baseline_points(db: DB, *, phase_id: int) -> list[tuple[str, float, datetime]]:
@@ -184,6 +199,28 @@ class Row:
     submitted_at: datetime
     conditions: dict[str, float]
     tasks: dict[str, dict[str, float]]
+    score_ci_low: float | None = None  # the score's 95% interval (None: no results)
+    score_ci_high: float | None = None
+    tied: bool = False
+    """Statistically tied with the ranked row above: their score intervals overlap."""
+
+    def in_order(self, *, tasks: Sequence[str], conditions: Sequence[str]) -> Row:
+        """This row with its tasks and conditions in the suite's order (unknown ones last)."""
+        return replace(
+            self,
+            tasks=_ordered(self.tasks, tasks),
+            conditions=_ordered(self.conditions, conditions),
+        )
+
+
+def _ordered(values: dict[str, V], order: Sequence[str]) -> dict[str, V]:
+    known = {name: values[name] for name in order if name in values}
+    return known | {name: value for name, value in values.items() if name not in known}
+
+
+def overlaps(a: tuple[float, float] | None, b: tuple[float, float] | None) -> bool:
+    """Whether two intervals share a point (False when either is unknown)."""
+    return a is not None and b is not None and a[0] <= b[1] and b[0] <= a[1]
 
 
 @dataclass(frozen=True)
@@ -277,9 +314,11 @@ def _read_page(db: DB, phase_id: int, page: int, per_page: int, meta: _Meta) -> 
     first = (entries[0].score, entries[0].submitted_at, entries[0].id)
     baselines_before = sum(1 for b in meta.baselines if _ahead(b, first))
     rank = offset - baselines_before
+    above = _ranked_before(db, phase_id, first) if rank > 0 else None
     rows: list[Row] = []
     for entry_id, username, submission_id, baseline, score, submitted_at, data in entries:
         del entry_id
+        interval = _interval(db, data, submission_id)
         if not baseline:
             rank += 1
         rows.append(
@@ -292,9 +331,44 @@ def _read_page(db: DB, phase_id: int, page: int, per_page: int, meta: _Meta) -> 
                 submitted_at=submitted_at,
                 conditions=data.get("conditions", {}),
                 tasks=data.get("tasks", {}),
+                score_ci_low=interval[0] if interval else None,
+                score_ci_high=interval[1] if interval else None,
+                tied=not baseline and overlaps(interval, above),
             )
         )
+        if not baseline:
+            above = interval
     return rows
+
+
+def _interval(db: DB, stored: dict[str, Any], submission_id: int) -> tuple[float, float] | None:
+    """The score's interval from a row's stored summary; for rows stored before summaries held
+    it, measured again from the submission's results (until the row is next refreshed)."""
+    if "score_interval" not in stored:
+        submission = db.get(Submission, submission_id)
+        stored = summary(db, submission=submission) if submission is not None else {}
+    found = stored.get("score_interval")
+    return (float(found[0]), float(found[1])) if found else None
+
+
+def _ranked_before(
+    db: DB, phase_id: int, key: tuple[float, datetime, int]
+) -> tuple[float, float] | None:
+    """The score interval of the last ranked (not baseline) row before rank key `key`."""
+    score, submitted_at, entry_id = key
+    e = LeaderboardEntry
+    before = or_(
+        e.score > score,
+        and_(e.score == score, e.submitted_at < submitted_at),
+        and_(e.score == score, e.submitted_at == submitted_at, e.id < entry_id),
+    )
+    found = db.execute(
+        select(e.summary, e.submission_id)
+        .where(e.phase_id == phase_id, e.baseline.is_(False), before)
+        .order_by(e.score, e.submitted_at.desc(), e.id.desc())
+        .limit(1)
+    ).first()
+    return _interval(db, found[0], found[1]) if found is not None else None
 
 
 PageKey = tuple[str, str, int, int, str]  # slug, phase, page, per_page, format

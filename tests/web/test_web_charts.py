@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime, timedelta, timezone
 
 from server.challenges.charts import (
     BAR_LABEL_WIDTH,
@@ -73,3 +73,23 @@ def test_step_chart_shows_baselines_alone_and_nothing_without_data() -> None:
     assert chart.baselines == [(chart.top, "baseline a #1")]
     assert [label for _, label in chart.x_ticks] == ["2026-01-01", "2026-01-02", "2026-01-04"]
     assert step_chart([], now=T0) is None
+
+
+def test_step_chart_axis_ends_now_and_widens_a_short_history_into_the_past() -> None:
+    now = T0 + timedelta(minutes=10)
+    chart = step_chart([point(0, 0.5, 1)], now=now)
+    assert chart is not None
+    assert chart.path.endswith(f"H{float(chart.right)}")  # the line reaches now, the right edge
+    (x_first, first), _, (x_last, last) = chart.x_ticks
+    assert (x_first, x_last) == (chart.left, chart.right)
+    assert last == "01-01 00:10"  # the axis ends at now, not an hour later
+    assert first == "12-31 23:10"
+    assert chart.markers[0].x > chart.left  # the point sits 50 minutes into the hour shown
+
+
+def test_step_chart_ticks_are_utc_whatever_the_zone_of_now() -> None:
+    paris = timezone(timedelta(hours=1))
+    now = (T0 + timedelta(minutes=30)).astimezone(paris)  # 01:30 in Paris
+    chart = step_chart([point(0, 0.5, 1)], now=now)
+    assert chart is not None
+    assert chart.x_ticks[-1][1] == "01-01 00:30"

@@ -28,6 +28,23 @@ for (const button of document.querySelectorAll("button[data-copy]")) {
   });
 }
 
+// Tables wider than their box say so: a hint above them and a shadow on the edge that hides
+// columns (the rank and participant columns are sticky, in the stylesheet).
+for (const frame of document.querySelectorAll("[data-scroll-cue]")) {
+  const scroller = frame.querySelector(".table-scroll");
+  const hint = frame.querySelector(".scroll-hint");
+  if (!scroller) continue;
+  const update = () => {
+    const hidden = scroller.scrollWidth - scroller.clientWidth;
+    frame.classList.toggle("more-left", scroller.scrollLeft > 1);
+    frame.classList.toggle("more-right", scroller.scrollLeft < hidden - 1);
+    if (hint) hint.hidden = hidden <= 1;
+  };
+  scroller.addEventListener("scroll", update, { passive: true });
+  if (window.ResizeObserver) new ResizeObserver(update).observe(scroller);
+  update();
+}
+
 // The submission page follows its state through server-sent events until it ends, then
 // swaps in the results without reloading the page.
 function stateBadge(state) {
