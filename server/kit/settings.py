@@ -7,9 +7,11 @@ mandatory. Every field is documented in ``docs/server.md``.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import secrets
+import threading
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -205,14 +207,27 @@ class Settings(BaseSettings):
 SecretName = Literal["secret_key", "seed_secret", "worker_token", "registry_pull_password"]
 
 
+_generated: dict[tuple[str, str], str] = {}
+_generated_lock = threading.Lock()
+
+
 def _generated_secret(path: Path, name: str) -> str:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    stored: dict[str, str] = json.loads(path.read_text()) if path.exists() else {}
-    if name not in stored:
-        stored[name] = secrets.token_urlsafe(32)
-        tmp = path.with_suffix(".tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "w") as f:
-            json.dump(stored, f)
-        os.replace(tmp, path)
-    return stored[name]
+    """Read (or make) once per process: the internal API checks the worker token at every
+    heartbeat. Processes sharing a data directory agree through a lock on the file."""
+    key = (str(path.resolve()), name)
+    with _generated_lock:
+        if (known := _generated.get(key)) is not None:
+            return known
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path.with_suffix(".lock"), "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+            stored: dict[str, str] = json.loads(path.read_text()) if path.exists() else {}
+            if name not in stored:
+                stored[name] = secrets.token_urlsafe(32)
+                tmp = path.with_suffix(".tmp")
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                with os.fdopen(fd, "w") as f:
+                    json.dump(stored, f)
+                os.replace(tmp, path)
+        _generated[key] = stored[name]
+        return stored[name]

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -45,3 +48,26 @@ def test_environment_lists_and_rates(monkeypatch: pytest.MonkeyPatch, tmp_path: 
     monkeypatch.setenv("MANIEVAL_LOGIN_RATE", "lots")
     with pytest.raises(ValidationError):
         Settings()
+
+
+def test_a_generated_secret_is_read_once_per_process(tmp_path: Path) -> None:
+    settings = Settings(dev_mode=True, data_dir=tmp_path)
+    token = settings.secret("worker_token")
+    (tmp_path / "secrets.json").write_text('{"worker_token": "changed-behind-our-back"}')
+    assert settings.secret("worker_token") == token  # no file read per heartbeat
+
+
+def test_processes_sharing_a_data_directory_generate_the_same_secrets(tmp_path: Path) -> None:
+    code = (
+        "import sys; from server.kit.settings import Settings; "
+        "print(Settings(dev_mode=True, data_dir=sys.argv[1]).secret('seed_secret'))"
+    )
+    started = [
+        subprocess.Popen(
+            [sys.executable, "-c", code, str(tmp_path)], stdout=subprocess.PIPE, text=True
+        )
+        for _ in range(4)
+    ]
+    answers = {p.communicate(timeout=120)[0].strip() for p in started}
+    assert len(answers) == 1
+    assert answers == {json.loads((tmp_path / "secrets.json").read_text())["seed_secret"]}
