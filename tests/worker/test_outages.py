@@ -37,8 +37,8 @@ from server.models import State, Submission, Transition, utcnow
 from server.submissions.work import assignment
 from tests.factories import PASSWORD, embedded_database
 from tests.private_postgres import PrivatePostgres
+from tests.worker.celery_workers import add_challenge, celery_worker, wait_ready, worker_environment
 from tests.worker.redis_server import Redis, free_port
-from tests.worker.test_celery import add_challenge, celery_worker, wait_ready, worker_environment
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(900)]
 ROUNDS = 10
