@@ -196,7 +196,8 @@ RESERVED_USERNAMES = frozenset(
     """
 admin administrator root superuser sudo system sysadmin api www web mail email postmaster
 hostmaster webmaster abuse security support help info contact staff team moderator mod official
-manieval manieval-puller maniskill null none undefined anonymous guest nobody everyone me self user users account
+manieval manieval-puller maniskill null none undefined anonymous guest nobody everyone me self
+user users account
 accounts login logout signin signup register settings profile dashboard static assets docs status
 health challenges submissions leaderboard leaderboards new edit delete
 """.split()
