@@ -34,6 +34,7 @@ from server.registry import api as registry_api
 from server.submissions import api as submissions_api
 from server.submissions import events, internal, submit_pages
 from server.submissions import pages as submissions_pages
+from server.submissions.changes import ChangeFeed
 from server.submissions.images import image_resolver
 from server.submissions.outbox import CeleryQueue, Dispatcher, Unattached, WorkQueue
 from server.submissions.service import Resolver
@@ -71,6 +72,7 @@ def create_app(
         dispatcher=dispatcher,
     )
     stop = threading.Event()
+    feed = ChangeFeed()
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
@@ -79,9 +81,11 @@ def create_app(
         )
         if background:
             sweeper.start()
+        feed.listen(settings.resolved_database_url)  # other processes' changes, on Postgres
         try:
             yield
         finally:
+            feed.close()
             stop.set()
 
     app = FastAPI(
@@ -96,6 +100,7 @@ def create_app(
     app.state.score_history = challenges_pages.ScoreHistory()
     app.state.event_timing = events.StreamTiming()
     app.state.event_slots = events.StreamSlots()
+    app.state.change_feed = feed
     for api in (accounts_api, challenges_api, leaderboard_api, submissions_api, internal):
         app.include_router(api.router)
     app.include_router(registry_api.router)

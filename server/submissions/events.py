@@ -2,10 +2,13 @@
 
 `GET /submissions/{id}/events[?after=T]` streams every transition after transition id `T`
 (or the `Last-Event-ID` a reconnecting browser sends), in order, so none is missed however the
-polls fall; `progress` events while it runs; and `end` once it reaches a final state, after
-which the stream closes. A comment line keeps idle connections open through proxies, and a
-stream lasts at most `max_s` seconds: the browser then reconnects where it left off. Each poll
-uses its own short database session, so an open stream holds no connection.
+reads fall; `progress` events while it runs; and `end` once it reaches a final state, after
+which the stream closes. A stream reads the database when its submission changes
+(`server/submissions/changes.py`: pushed on commit, through Postgres LISTEN/NOTIFY across
+processes), and otherwise only every `fallback_s` seconds, not once a second. A comment line
+keeps idle connections open through proxies, and a stream lasts at most `max_s` seconds: the
+browser then reconnects where it left off. Each read uses its own short database session, so an
+open stream holds no connection.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from server.accounts import service as accounts
 from server.kit.deps import SESSION_COOKIE, Id, services
 from server.kit.errors import Unavailable
 from server.models import State, User
+from server.submissions.changes import ChangeFeed
 from server.submissions.service import find_visible, get_visible, transitions_of
 
 router = APIRouter(include_in_schema=False)
@@ -35,7 +39,7 @@ router = APIRouter(include_in_schema=False)
 
 @dataclass(frozen=True)
 class StreamTiming:
-    poll_s: float = 1.0
+    fallback_s: float = 15.0  # read anyway after this long without a change signal
     keepalive_s: float = 15.0
     max_s: float = 120.0  # also bounds how long a server shutdown waits for open streams
     retry_ms: int = 3000  # how long the browser waits before reconnecting
@@ -125,10 +129,26 @@ async def _stream(
     request: Request, submission_id: int, after: int, user: User | None, timing: StreamTiming
 ) -> AsyncIterator[str]:
     sessions = services(request).sessions
+    feed: ChangeFeed = request.app.state.change_feed
     yield f"retry: {timing.retry_ms}\n\n"
+    with feed.watch(submission_id) as signal:  # before the first read: no change falls between
+        async for chunk in _follow(request, sessions, signal, submission_id, after, user, timing):
+            yield chunk
+
+
+async def _follow(
+    request: Request,
+    sessions: sessionmaker[DB],
+    signal: asyncio.Event,
+    submission_id: int,
+    after: int,
+    user: User | None,
+    timing: StreamTiming,
+) -> AsyncIterator[str]:
     started = last_sent = time.monotonic()
     last_progress: dict[str, Any] | None = None
     while True:
+        signal.clear()
         snap = await run_in_threadpool(_poll, sessions, submission_id, after, user)
         if snap is None:  # deleted, or no longer visible to this viewer
             yield sse("gone", {})
@@ -151,7 +171,15 @@ async def _stream(
             last_sent = now
         if snap.state.final or now - started >= timing.max_s or await request.is_disconnected():
             return
-        await asyncio.sleep(timing.poll_s)
+        wait = min(
+            timing.fallback_s,
+            timing.keepalive_s - (now - last_sent),
+            timing.max_s - (now - started),
+        )
+        try:
+            await asyncio.wait_for(signal.wait(), timeout=max(wait, 0.0))
+        except TimeoutError:
+            pass  # read anyway: a keep-alive, the end of the stream's life, or a missed signal
 
 
 @router.get("/submissions/{submission_id}/events")

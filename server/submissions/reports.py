@@ -26,6 +26,7 @@ from server.models import (
     TaskResultRow,
     utcnow,
 )
+from server.submissions.changes import changed
 from server.submissions.reconcile import end_lost
 from server.submissions.states import transition
 
@@ -106,7 +107,10 @@ def report_progress(
         .values(**values)
         .execution_options(synchronize_session=False)
     )
-    return bool(result.rowcount == 1)  # type: ignore[attr-defined]
+    applied = bool(result.rowcount == 1)  # type: ignore[attr-defined]
+    if applied and progress is not None:  # a bare heartbeat changes nothing a view shows
+        changed(db, submission_id)
+    return applied
 
 
 def report_final(

@@ -17,6 +17,7 @@ from sqlalchemy.orm import Session as DB
 
 from server.leaderboard.service import refresh
 from server.models import FINAL_STATES, Cause, Outbox, State, Submission, Transition, utcnow
+from server.submissions.changes import changed
 
 # Which states each state may move to (re-run, a new attempt, is separate: final -> queued).
 ALLOWED: dict[State, frozenset[State]] = {
@@ -87,6 +88,7 @@ def transition(
         )
     )
     db.flush()
+    changed(db, submission_id)
     return True
 
 
@@ -141,6 +143,7 @@ def new_attempt(
     )
     db.add(Outbox(submission_id=submission.id, attempt=old + 1, created_at=now))
     db.flush()
+    changed(db, submission.id)
     db.refresh(submission)
     refresh(db, phase_id=submission.phase_id, user_id=submission.user_id)
     return True

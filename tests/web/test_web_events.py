@@ -60,7 +60,8 @@ def live(settings: Settings, committed_sessions: sessionmaker[Session]) -> TestC
         resolve=fake_resolve_for(settings),
         background=False,
     )
-    app.state.event_timing = StreamTiming(poll_s=0.01, keepalive_s=3600, max_s=3600)
+    # No fallback reads: every change must arrive because it was pushed.
+    app.state.event_timing = StreamTiming(fallback_s=3600, keepalive_s=3600, max_s=3600)
     return TestClient(app, follow_redirects=False)
 
 
@@ -152,7 +153,7 @@ def test_an_idle_stream_sends_keep_alives_and_ends_at_its_time_bound(
     live: TestClient, committed_sessions: sessionmaker[Session]
 ) -> None:
     sid = queued(committed_sessions)
-    live.app.state.event_timing = StreamTiming(poll_s=0.01, keepalive_s=0, max_s=0)  # type: ignore[attr-defined]
+    live.app.state.event_timing = StreamTiming(fallback_s=0.01, keepalive_s=0, max_s=0)  # type: ignore[attr-defined]
     with committed_sessions() as db:
         last = max(t.id for t in db.query(Transition).filter_by(submission_id=sid))
     text = live.get(f"/submissions/{sid}/events?after={last}").text
@@ -169,7 +170,7 @@ def test_private_streams_are_404_to_others_and_open_to_the_owner(
         make_user(db, "bob")
     assert live.get(f"/submissions/{sid}/events").status_code == 404
     assert browser(live, "bob").get(f"/submissions/{sid}/events").status_code == 404
-    live.app.state.event_timing = StreamTiming(poll_s=0.01, keepalive_s=0, max_s=0)  # type: ignore[attr-defined]
+    live.app.state.event_timing = StreamTiming(fallback_s=0.01, keepalive_s=0, max_s=0)  # type: ignore[attr-defined]
     owner = browser(live, "alice").get(f"/submissions/{sid}/events")
     assert owner.status_code == 200
     assert "event: transition" in owner.text
