@@ -107,6 +107,9 @@ class ChangeFeed:
                 with psycopg.connect(dsn, autocommit=True, connect_timeout=10) as conn:
                     conn.execute(f"LISTEN {CHANNEL}")
                     log.debug("listening for submission changes")
+                    with self._lock:  # what changed while no one listened: read it again
+                        missed = list(self._watchers)
+                    self.publish(missed)
                     while not self._stop.is_set():
                         for notice in conn.notifies(timeout=1.0):
                             self.publish(_ids(notice.payload))

@@ -5,7 +5,8 @@
 reads fall; `progress` events while it runs; and `end` once it reaches a final state, after
 which the stream closes. A stream reads the database when its submission changes
 (`server/submissions/changes.py`: pushed on commit, through Postgres LISTEN/NOTIFY across
-processes), and otherwise only every `fallback_s` seconds, not once a second. A comment line
+processes), not on a timer: an idle stream only sends its keep-alives, and reads again after
+`fallback_s` without a signal (which, at the default, is also the stream's life). A comment line
 keeps idle connections open through proxies, and a stream lasts at most `max_s` seconds: the
 browser then reconnects where it left off. Each read uses its own short database session, so an
 open stream holds no connection.
@@ -39,7 +40,7 @@ router = APIRouter(include_in_schema=False)
 
 @dataclass(frozen=True)
 class StreamTiming:
-    fallback_s: float = 15.0  # read anyway after this long without a change signal
+    fallback_s: float = 120.0  # read anyway after this long without a change signal
     keepalive_s: float = 15.0
     max_s: float = 120.0  # also bounds how long a server shutdown waits for open streams
     retry_ms: int = 3000  # how long the browser waits before reconnecting
@@ -145,41 +146,47 @@ async def _follow(
     user: User | None,
     timing: StreamTiming,
 ) -> AsyncIterator[str]:
-    started = last_sent = time.monotonic()
+    started = last_sent = last_read = time.monotonic()
     last_progress: dict[str, Any] | None = None
+    read = True
     while True:
-        signal.clear()
-        snap = await run_in_threadpool(_poll, sessions, submission_id, after, user)
-        if snap is None:  # deleted, or no longer visible to this viewer
-            yield sse("gone", {})
-            return
-        chunks = []
-        for t in snap.transitions:
-            chunks.append(sse("transition", t, event_id=t["id"]))
-            after = t["id"]
-        if snap.progress != last_progress and snap.state in (State.LAUNCHING, State.RUNNING):
-            chunks.append(sse("progress", snap.progress or {}))
-            last_progress = snap.progress
-        if snap.state.final:
-            chunks.append(sse("end", {"state": snap.state.value, "reason": snap.reason}))
+        if read:  # the first time, on a change signal, and every `fallback_s` regardless
+            signal.clear()
+            snap = await run_in_threadpool(_poll, sessions, submission_id, after, user)
+            last_read = time.monotonic()
+            if snap is None:  # deleted, or no longer visible to this viewer
+                yield sse("gone", {})
+                return
+            chunks = []
+            for t in snap.transitions:
+                chunks.append(sse("transition", t, event_id=t["id"]))
+                after = t["id"]
+            if snap.progress != last_progress and snap.state in (State.LAUNCHING, State.RUNNING):
+                chunks.append(sse("progress", snap.progress or {}))
+                last_progress = snap.progress
+            if snap.state.final:
+                chunks.append(sse("end", {"state": snap.state.value, "reason": snap.reason}))
+            if chunks:
+                yield "".join(chunks)
+                last_sent = time.monotonic()
+            if snap.state.final:
+                return
         now = time.monotonic()
-        if chunks:
-            yield "".join(chunks)
-            last_sent = now
-        elif now - last_sent >= timing.keepalive_s:
+        if now - last_sent >= timing.keepalive_s:  # without a read: idle streams cost nothing
             yield ": keep-alive\n\n"
             last_sent = now
-        if snap.state.final or now - started >= timing.max_s or await request.is_disconnected():
+        if now - started >= timing.max_s or await request.is_disconnected():
             return
         wait = min(
-            timing.fallback_s,
+            timing.fallback_s - (now - last_read),
             timing.keepalive_s - (now - last_sent),
             timing.max_s - (now - started),
         )
         try:
             await asyncio.wait_for(signal.wait(), timeout=max(wait, 0.0))
+            read = True
         except TimeoutError:
-            pass  # read anyway: a keep-alive, the end of the stream's life, or a missed signal
+            read = time.monotonic() - last_read >= timing.fallback_s
 
 
 @router.get("/submissions/{submission_id}/events")

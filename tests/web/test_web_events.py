@@ -162,6 +162,21 @@ def test_an_idle_stream_sends_keep_alives_and_ends_at_its_time_bound(
     assert "event: end" not in text  # not ended: the browser reconnects where it was
 
 
+def test_an_idle_stream_reads_the_database_once_however_many_keep_alives_it_sends(
+    live: TestClient, committed_sessions: sessionmaker[Session], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from server.submissions import events as stream
+
+    sid = queued(committed_sessions)
+    reads: list[int] = []
+    poll = stream._poll
+    monkeypatch.setattr(stream, "_poll", lambda *args: reads.append(1) or poll(*args))
+    live.app.state.event_timing = StreamTiming(fallback_s=3600, keepalive_s=0.02, max_s=0.5)  # type: ignore[attr-defined]
+    text = live.get(f"/submissions/{sid}/events").text
+    assert text.count(": keep-alive") >= 2
+    assert len(reads) == 1  # nothing changed: no reads after the first
+
+
 def test_private_streams_are_404_to_others_and_open_to_the_owner(
     live: TestClient, committed_sessions: sessionmaker[Session]
 ) -> None:
