@@ -1,22 +1,99 @@
-"""The `manieval` command: one entry point for participants, organizers and operators."""
+"""The `manieval` command: one entry point for participants, organizers and operators.
+
+The participant commands and `evaluate` are light to import. The service's commands (`serve`,
+`demo`, `db`, `admin`, `challenge`) and the in-pod `evaluate-job` import the server, SQLAlchemy,
+the evaluator and the simulator: they are listed here by name and help line, and imported only
+when one of them runs, so that `manieval --help` and every participant command answer at once
+(bench/cli_startup.py measures it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import import_module
+from typing import Any
 
 import typer
+from typer.core import TyperCommand, TyperGroup
 
-from evaluator.job import evaluate_job
 from manieval import account, participant, push
 from manieval.evaluate import evaluate
-from manieval.serve import demo, serve
-from server.cli import admin_app, challenge_app, db_app
+
+PARTICIPATE = "Take part (against a server)"
+OPERATE = "Evaluate locally and run the service"
+
+
+@dataclass(frozen=True)
+class Deferred:
+    """A command imported when it runs: a Typer app, or a function made into a command."""
+
+    module: str
+    attribute: str
+    help: str = ""
+    hidden: bool = False
+
+    def load(self, name: str) -> Any:
+        """The real command (a Click command or group)."""
+        found = getattr(import_module(self.module), self.attribute)
+        if isinstance(found, typer.Typer):
+            group = typer.main.get_group(found)
+            group.name = name
+            return group
+        single = typer.Typer(add_completion=False)
+        single.command(name, hidden=self.hidden, rich_help_panel=OPERATE)(found)
+        return typer.main.get_command(single)
+
+
+DEFERRED = {
+    "evaluate-job": Deferred("evaluator.job", "evaluate_job", hidden=True),
+    "serve": Deferred(
+        "manieval.serve",
+        "serve",
+        "Run the service: the API and, on the embedded default, its worker (migrating the "
+        "database first).",
+    ),
+    "demo": Deferred(
+        "manieval.serve",
+        "demo",
+        "Run the service locally with the example policies evaluated on the leaderboard.",
+    ),
+    "db": Deferred("server.cli", "db_app", "Database schema."),
+    "admin": Deferred("server.cli", "admin_app", "Administrators."),
+    "challenge": Deferred("server.cli", "challenge_app", "Challenges."),
+}
+
+
+class Placeholder(TyperCommand):
+    """A deferred command's name and help line in `manieval --help`, until it runs."""
+
+    def __init__(self, name: str, deferred: Deferred) -> None:
+        super().__init__(name, help=deferred.help, hidden=deferred.hidden, rich_help_panel=OPERATE)
+        self.deferred = deferred
+
+
+class DeferringGroup(TyperGroup):
+    """The top-level group: deferred commands are listed from `DEFERRED` and imported when
+    they are resolved to run (or to show their own help)."""
+
+    def __init__(self, **attrs: Any) -> None:
+        super().__init__(**attrs)
+        for name, deferred in DEFERRED.items():
+            self.commands.setdefault(name, Placeholder(name, deferred))
+
+    def resolve_command(self, ctx: Any, args: list[str]) -> tuple[str | None, Any, list[str]]:
+        name, command, rest = super().resolve_command(ctx, args)
+        if isinstance(command, Placeholder) and name is not None:
+            command = self.commands[name] = command.deferred.load(name)
+        return name, command, rest
+
 
 app = typer.Typer(
     name="manieval",
     help="ManiEval: evaluate manipulation policies on ManiSkill benchmark suites.",
     no_args_is_help=True,
     add_completion=False,
+    cls=DeferringGroup,
 )
-
-PARTICIPATE = "Take part (against a server)"
-OPERATE = "Evaluate locally and run the service"
 
 
 @app.callback()
@@ -39,9 +116,3 @@ for command in (
     app.command(rich_help_panel=PARTICIPATE)(command)
 
 app.command("evaluate", rich_help_panel=OPERATE)(evaluate)
-app.command("evaluate-job", hidden=True)(evaluate_job)
-app.command("serve", rich_help_panel=OPERATE)(serve)
-app.command("demo", rich_help_panel=OPERATE)(demo)
-app.add_typer(db_app, name="db", rich_help_panel=OPERATE)
-app.add_typer(admin_app, name="admin", rich_help_panel=OPERATE)
-app.add_typer(challenge_app, name="challenge", rich_help_panel=OPERATE)

@@ -11,19 +11,21 @@ import re
 from dataclasses import dataclass, field
 from datetime import datetime
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import quote, urlsplit
-
-import httpx
 
 from manieval import __version__
 
+if TYPE_CHECKING:  # httpx is imported when a client is made: `manieval --help` needs none
+    import httpx
+
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 API = "/api/v1"
-TIMEOUT = httpx.Timeout(30.0, connect=10.0)
+CONNECT_S = 10.0
+READ_S = 30.0
 # Submitting resolves the image through its registry (several requests, each with its own
 # server-side timeout): give it longer than a plain read.
-SUBMIT_TIMEOUT = httpx.Timeout(120.0, connect=10.0)
+SUBMIT_READ_S = 120.0
 
 JSON = dict[str, Any]
 
@@ -134,11 +136,16 @@ class Client:
     ) -> None:
         self.server = server
         self.token = token
+        import httpx
+
         headers = {"User-Agent": f"manieval-cli/{__version__}"}
         if token is not None:
             headers["Authorization"] = f"Bearer {token}"
         self._http = httpx.Client(
-            base_url=server, headers=headers, timeout=TIMEOUT, transport=transport
+            base_url=server,
+            headers=headers,
+            timeout=httpx.Timeout(READ_S, connect=CONNECT_S),
+            transport=transport,
         )
 
     def __enter__(self) -> Client:
@@ -159,15 +166,18 @@ class Client:
         *,
         json: JSON | None = None,
         params: dict[str, str | int] | None = None,
-        timeout: httpx.Timeout = TIMEOUT,
+        read_s: float = READ_S,
     ) -> httpx.Response:
         """One API call; raises `Unreachable` or `ApiError` unless the answer is a 2xx."""
+        import httpx
+
+        timeout = httpx.Timeout(read_s, connect=CONNECT_S)
         try:
             response = self._http.request(
                 method, API + path, json=json, params=params, timeout=timeout
             )
         except httpx.TimeoutException:
-            raise Unreachable(self.server, f"no answer within {timeout.read:.0f} s") from None
+            raise Unreachable(self.server, f"no answer within {read_s:.0f} s") from None
         except httpx.TransportError as exc:
             reason = re.sub(r"^\[Errno -?\d+\] ", "", str(exc)) or type(exc).__name__
             raise Unreachable(self.server, reason) from None
@@ -252,7 +262,7 @@ class Client:
             "description": description,
             "public": public,
         }
-        result: JSON = self.call("POST", "/submissions", json=body, timeout=SUBMIT_TIMEOUT)
+        result: JSON = self.call("POST", "/submissions", json=body, read_s=SUBMIT_READ_S)
         return result
 
     def submission(self, submission_id: int) -> JSON:
@@ -274,6 +284,18 @@ class Client:
     def cancel(self, submission_id: int) -> JSON:
         result: JSON = self.call("POST", f"/submissions/{submission_id}/cancel")
         return result
+
+
+def speaks_api(server: str) -> bool:
+    """Whether `server` answers the API's public challenge list (False: a wrong URL or path)."""
+    try:
+        with Client(server) as client:
+            found = client.call("GET", "/challenges", params={"per_page": 1})
+    except ApiError:
+        return False
+    except ClientError:
+        return True  # no answer says nothing about the path
+    return isinstance(found, dict) and isinstance(found.get("items"), list)
 
 
 def _segment(value: str) -> str:

@@ -9,16 +9,19 @@ serving until interrupted. A second run reuses the same data and skips finished 
 from __future__ import annotations
 
 import secrets
-import time
 from pathlib import Path
+from typing import Any
 
-import httpx
 from rich.console import Console
-from rich.table import Table
+from rich.text import Text
 from sqlalchemy import select
 
-from manieval.client import DEFAULT_SERVER
+from manieval import render
+from manieval.client import DEFAULT_SERVER, Client
 from manieval.engines import embedded_engines
+from manieval.errors import handled
+from manieval.follow import follow_all
+from manieval.quiet import service_logging
 from manieval.service import Service
 from server.accounts import service as accounts
 from server.challenges.service import ChallengeOptions, load_challenge
@@ -28,9 +31,12 @@ from server.models import User
 
 CHALLENGE = "maniskill-core"
 POLICIES = ("scripted", "random")
-FINAL = {"succeeded", "failed", "error", "cancelled", "timed_out"}
+ENDED_BADLY = {"failed", "error", "cancelled", "timed_out"}
+LOG_FILE = "demo.log"
+LOG_TAIL_LINES = 5
 
 console = Console(stderr=True, soft_wrap=True)
+JSON = dict[str, Any]
 
 
 def run_demo(
@@ -42,7 +48,10 @@ def run_demo(
     exit_when_done: bool,
     with_engines: bool = True,
 ) -> int:
+    """Serve with the examples evaluated; with `exit_when_done`, 0 only if both succeeded."""
     url = f"http://{host}:{port}"
+    log_path = settings.data_dir / LOG_FILE
+    service_logging(log_path)
     upgrade(settings.resolved_database_url)
     sessions = session_factory(make_engine(settings.resolved_database_url))
     with sessions.begin() as db:
@@ -61,22 +70,19 @@ def run_demo(
         console.print(f"[red]the server could not start on {url} (port in use?)[/]")
         return 1
     console.print(f"ManiEval is running at [bold]{url}[/] (API docs: {url}/docs)")
-    console.print(f"data: {settings.data_dir}; log in as [bold]demo[/] / {password}")
+    console.print(f"data: {settings.data_dir} (log: {log_path})")
+    console.print(f"log in as [bold]demo[/] / {password}")
     if engines is not None and engines.registry_domain is not None:
         _print_participant_path(url, engines.registry_domain)
     try:
-        with httpx.Client(base_url=url, timeout=30) as client:
-            token = client.post(
-                "/api/v1/auth/token", json={"login": "demo", "password": password, "name": "demo"}
-            ).json()["token"]
-            client.headers["Authorization"] = f"Bearer {token}"
-            ids = _submit_missing(client)
-            _follow(client, ids)
-            _print_leaderboard(client)
-        console.print(f"leaderboard: [bold]{url}/challenges/{CHALLENGE}/leaderboard[/]")
-        console.print(f"  (JSON: {url}/api/v1/challenges/{CHALLENGE}/leaderboard)")
+        with handled(), Client(url) as anonymous:
+            token = anonymous.create_token(login="demo", password=password, name="demo")["token"]
+        with handled(), Client(url, token=token) as client:
+            names = _submit_missing(client)
+            finals = follow_all(client, list(names), names=names, console=console)
+            all_succeeded = _report(client, finals, url=url, log_path=log_path)
         if exit_when_done:
-            return 0
+            return 0 if all_succeeded else 1
         console.print("serving; press Ctrl-C to stop")
         service.wait()
     except KeyboardInterrupt:
@@ -126,75 +132,72 @@ def _demo_account(db: object, data_dir: Path) -> str:
     return password
 
 
-def _submit_missing(client: httpx.Client) -> list[int]:
-    """Submit each example policy that has no queued, running or succeeded submission yet."""
-    mine = client.get(
-        "/api/v1/submissions", params={"challenge": CHALLENGE, "per_page": 200}
-    ).json()["items"]
-    ids: list[int] = []
+def _submit_missing(client: Client) -> dict[int, str]:
+    """Submit each example policy that has no queued, running or succeeded submission yet;
+    the submissions to follow, with their images."""
+    mine = client.my_submissions(challenge=CHALLENGE, per_page=200)
+    names: dict[int, str] = {}
     for name in POLICIES:
         image = f"local:{name}"
-        current = [
-            s
-            for s in mine
-            if s["image"] == image
-            and s["state"] not in {"failed", "error", "cancelled", "timed_out"}
-        ]
+        current = [s for s in mine if s["image"] == image and s["state"] not in ENDED_BADLY]
         if current:
-            ids.append(current[0]["id"])
+            names[current[0]["id"]] = image
             continue
-        r = client.post(
-            "/api/v1/submissions",
-            json={
-                "challenge": CHALLENGE,
-                "phase": "dev",
-                "image": image,
-                "description": f"bundled example policy: {name}",
-            },
+        s = client.submit(
+            challenge=CHALLENGE,
+            phase="dev",
+            image=image,
+            description=f"bundled example policy: {name}",
+            public=True,
         )
-        r.raise_for_status()
-        sid = r.json()["id"]
-        client.patch(f"/api/v1/submissions/{sid}", json={"baseline": True}).raise_for_status()
-        console.print(f"submitted {image} as submission {sid}")
-        ids.append(sid)
-    return ids
+        client.call("PATCH", f"/submissions/{s['id']}", json={"baseline": True})
+        console.print(f"submitted {image} as submission {s['id']}")
+        names[s["id"]] = image
+    return names
 
 
-def _follow(client: httpx.Client, ids: list[int]) -> None:
-    last: dict[int, str] = {}
-    while True:
-        pending = 0
-        for sid in ids:
-            s = client.get(f"/api/v1/submissions/{sid}").json()
-            progress = s.get("progress") or {}
-            line = f"submission {sid} ({s['image']}): {s['state']}"
-            if s["state"] == "running" and progress:
-                line += f" {progress.get('done')}/{progress.get('total')} episodes"
-                line += f" ({progress.get('task')}, {progress.get('condition')})"
-            if s["state"] in FINAL:
-                line += f": {s['reason']}"
-            else:
-                pending += 1
-            if last.get(sid) != line:
-                console.print(line)
-                last[sid] = line
-        if not pending:
-            return
-        time.sleep(1.0)
+def _report(client: Client, finals: list[JSON], *, url: str, log_path: Path) -> bool:
+    """The board if anything succeeded; what failed, and what to do next. True: all done."""
+    failed = [s for s in finals if s["state"] != "succeeded"]
+    if len(failed) < len(finals):
+        board = client.leaderboard(CHALLENGE, phase="dev", page=1, per_page=50).json()
+        render.stdout().print(render.leaderboard_table(board))
+        console.print(f"leaderboard: [bold]{url}/challenges/{CHALLENGE}/leaderboard[/]")
+        console.print(f"  (JSON: {url}/api/v1/challenges/{CHALLENGE}/leaderboard)")
+    if not failed:
+        return True
+    some = "none" if len(failed) == len(finals) else f"{len(failed)} of {len(finals)}"
+    console.print(Text(f"{some} of the example policies succeeded:", style="bold red"))
+    for s in failed:
+        console.print(Text(f"  submission {s['id']} ({s['image']}) {s['state']}: {s['reason']}"))
+        tail = client.logs(s["id"])["log_tail"].strip().splitlines()[-LOG_TAIL_LINES:]
+        if tail:
+            console.print(Text("    its policy's log ends with:", style="dim"))
+            for line in tail:
+                console.print(Text(f"      {render.printable(line, terminal=True)}"))
+        console.print(Text(f"    {url}/submissions/{s['id']}"))
+    for line in next_steps([s["state"] for s in failed], log_path=log_path):
+        console.print(Text(line), highlight=False)
+    return False
 
 
-def _print_leaderboard(client: httpx.Client) -> None:
-    board = client.get(f"/api/v1/challenges/{CHALLENGE}/leaderboard").json()
-    tasks = sorted({t for row in board["items"] for t in row["tasks"]})
-    table = Table(title=f"{CHALLENGE} leaderboard (dev)")
-    for column in ["rank", "user", "submission", "score", *tasks]:
-        table.add_column(column, justify="left" if column == "user" else "right")
-    for row in board["items"]:
-        rank = str(row["rank"]) if row["rank"] is not None else "baseline"
-        cells = [
-            f"{row['tasks'][t]['success_rate']:.2f}" if t in row["tasks"] else "-" for t in tasks
-        ]
-        table.add_row(
-            rank, row["username"], str(row["submission_id"]), f"{row['score']:.3f}", *cells
+def next_steps(states: list[str], *, log_path: Path) -> list[str]:
+    """What to do after the examples ended in these states (not `succeeded`)."""
+    steps = ["next:"]
+    if "error" in states:
+        steps.append(f"  the service could not run them (not the policies' fault): see {log_path}")
+    if "failed" in states or "timed_out" in states:
+        steps.append(
+            "  the policies broke (their reasons and logs are above); run one alone, without "
+            "the service, to see the policy's and the simulator's own errors:"
         )
-    Console(width=max(Console().width, 150)).print(table)
+        steps.append(
+            "    manieval evaluate --policy examples/policies/random --tasks PickCube-v1 "
+            "--condition nominal --episodes 1"
+        )
+    if "cancelled" in states:
+        steps.append("  they were cancelled (on the web or with manieval cancel)")
+    steps.append(
+        "  then run manieval demo again: what succeeded is kept, the rest is submitted again"
+    )
+    return steps

@@ -15,7 +15,7 @@ import typer
 from rich.text import Text
 
 from manieval import credentials, render
-from manieval.client import DEFAULT_SERVER, ApiError, NotLoggedIn, Unreachable
+from manieval.client import DEFAULT_SERVER, ApiError, NotLoggedIn, Unreachable, speaks_api
 from manieval.credentials import CredentialsError
 
 
@@ -103,6 +103,14 @@ def explain(exc: ApiError) -> NoReturn:
         message, fields = f"invalid {fields[0]}", []
     if exc.code in ("http_error", "not_json"):
         fail(ExitCode.SERVER_ERROR, exc.message, "is --server the address of a ManiEval server?")
+    if exc.status == 404 and exc.server and not speaks_api(exc.server):
+        # Our own server under a wrong path prefix answers 404 to everything: not a "no such
+        # challenge", but a URL that is not the API's.
+        fail(
+            ExitCode.SERVER_ERROR,
+            f"{exc.server} does not answer as a ManiEval server ({exc.message})",
+            "is --server the address of a ManiEval server (with its path prefix, if any)?",
+        )
     if exc.status == 401:
         if exc.authenticated:
             fail(

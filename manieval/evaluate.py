@@ -3,19 +3,32 @@
 from __future__ import annotations
 
 import os
+import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from types import TracebackType
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 from rich.table import Table
+from rich.text import Text
 
-from evaluator.evaluation import evaluate as run_evaluation
-from evaluator.plan import EvaluationPlan, build_plan
-from evaluator.results import EpisodeResult, EvaluationResult
-from evaluator.sources import LocalDirectory, PolicySource, PolicySourceError
-from evaluator.suite import SuiteError, load_suite
+from manieval import render
+
+if TYPE_CHECKING:  # the evaluator (torch, SAPIEN) is imported when the command runs
+    from evaluator.plan import EvaluationPlan
+    from evaluator.results import EvaluationResult
+    from evaluator.sources import PolicySource
 
 SECRET_ENV = "MANIEVAL_SEED_SECRET"
 console = Console(stderr=True, soft_wrap=True)  # error messages stay whole for grep and logs
@@ -63,6 +76,10 @@ def evaluate(
     ] = None,
 ) -> None:
     """Evaluate a policy on a benchmark suite and print per-task success rates."""
+    from evaluator.plan import build_plan
+    from evaluator.sources import PolicySourceError
+    from evaluator.suite import SuiteError, load_suite
+
     try:
         plan = build_plan(
             load_suite(suite),
@@ -78,18 +95,28 @@ def evaluate(
         console.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(2) from None
     result = _run_with_progress(plan, source, workers=workers, video=video)
-    Console().print(result_table(result))
+    if result.abort is not None:
+        # First and alone: a table of zeros would read as a scored policy.
+        console.print(
+            Text("evaluation aborted ", style="bold red")
+            + Text(f"({result.abort.kind}): {result.abort.reason}")
+        )
+        if result.abort.log_tail:
+            console.print(Text("policy log tail:", style="dim"))
+            console.print(Text(result.abort.log_tail[-2000:]))
+        console.print("no score: the evaluation did not finish")
+    else:
+        render.stdout().print(result_table(result))
     if json_out is not None:
         json_out.write_text(result.model_dump_json(indent=2))
         console.print(f"result document written to {json_out}")
     if result.abort is not None:
-        console.print(f"[red]evaluation aborted ({result.abort.kind}):[/red] {result.abort.reason}")
-        if result.abort.log_tail:
-            console.print("[dim]policy log tail:[/dim]\n" + result.abort.log_tail[-2000:])
         raise typer.Exit(1)
 
 
 def _source(policy: Path | None, image: str | None, engine: str | None) -> PolicySource:
+    from evaluator.sources import LocalDirectory, PolicySourceError
+
     if (policy is None) == (image is None):
         raise PolicySourceError("give exactly one of --policy DIR and --image REF")
     if policy is not None:
@@ -125,27 +152,112 @@ def _split(values: list[str] | None) -> list[str] | None:
 def _run_with_progress(
     plan: EvaluationPlan, source: PolicySource, *, workers: int, video: Path | None
 ) -> EvaluationResult:
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[successes]} ok"),
-        TimeElapsedColumn(),
-    )
-    with Progress(*columns, console=console) as progress:
-        bars = [
-            progress.add_task(
-                f"{run.condition.name:>12} {run.env_id}", total=len(run.seeds), successes=0
+    from evaluator.evaluation import evaluate as run_evaluation
+
+    runs = [(run.env_id, run.condition.name, len(run.seeds)) for run in plan.runs]
+    shown = RunBars(console, runs) if console.is_terminal else RunLines(console, runs)
+    with shown:
+        return run_evaluation(
+            plan,
+            source,
+            workers=workers,
+            video_dir=video,
+            on_episode=lambda index, episode: shown.episode(index, episode.success_once),
+        )
+
+
+class RunLines:
+    """Without a terminal: a line when a task and condition is done, with the time left."""
+
+    def __init__(
+        self,
+        out: Console,
+        runs: list[tuple[str, str, int]],
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.out = out
+        self.runs = runs
+        self.clock = clock
+        self.total = sum(episodes for _, _, episodes in runs)
+        self.done = [0] * len(runs)
+        self.successes = [0] * len(runs)
+        self.started = clock()
+
+    def __enter__(self) -> RunLines:
+        tasks = len({env_id for env_id, _, _ in self.runs})
+        conditions = len({condition for _, condition, _ in self.runs})
+        self.out.print(
+            f"evaluating {self.total} episodes: {tasks} tasks under {conditions} conditions"
+        )
+        return self
+
+    def __exit__(
+        self,
+        _type: type[BaseException] | None,
+        _value: BaseException | None,
+        _tb: TracebackType | None,
+    ) -> None:
+        return None
+
+    def episode(self, index: int, success: bool) -> None:
+        self.done[index] += 1
+        self.successes[index] += success
+        self.advanced(index)
+
+    def advanced(self, index: int) -> None:
+        env_id, condition, episodes = self.runs[index]
+        if self.done[index] < episodes:
+            return
+        done = sum(self.done)
+        left = render.time_left(self.clock() - self.started, done, self.total)
+        self.out.print(
+            Text(
+                f"{env_id} ({condition}): {self.successes[index]}/{episodes} succeeded; "
+                f"{done}/{self.total} episodes done" + (f", {left}" if left else "")
             )
-            for run in plan.runs
+        )
+
+
+class RunBars(RunLines):
+    """On a terminal: a bar per task and condition, and one for all, with the time left."""
+
+    def __init__(self, out: Console, runs: list[tuple[str, str, int]]) -> None:
+        super().__init__(out, runs)
+        self.progress = Progress(
+            TextColumn("{task.description}", markup=False),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[successes]}"),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            console=out,
+        )
+        self.bars: list[TaskID] = []
+        self.all: TaskID | None = None
+
+    def __enter__(self) -> RunLines:
+        self.progress.start()
+        self.bars = [
+            self.progress.add_task(f"{condition:>12} {env_id}", total=episodes, successes="")
+            for env_id, condition, episodes in self.runs
         ]
-        successes = [0] * len(plan.runs)
+        self.all = self.progress.add_task(f"{'all':>12}", total=self.total, successes="")
+        return self
 
-        def advance(run_index: int, episode: EpisodeResult) -> None:
-            successes[run_index] += episode.success_once
-            progress.update(bars[run_index], advance=1, successes=successes[run_index])
+    def __exit__(
+        self,
+        _type: type[BaseException] | None,
+        _value: BaseException | None,
+        _tb: TracebackType | None,
+    ) -> None:
+        self.progress.stop()
 
-        return run_evaluation(plan, source, workers=workers, video_dir=video, on_episode=advance)
+    def advanced(self, index: int) -> None:
+        ok = f"{self.successes[index]} ok"
+        self.progress.update(self.bars[index], advance=1, successes=ok)
+        assert self.all is not None
+        self.progress.update(self.all, advance=1, successes=f"{sum(self.successes)} ok")
 
 
 def result_table(result: EvaluationResult) -> Table:

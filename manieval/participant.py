@@ -118,14 +118,12 @@ def wait_and_report(client: Client, submission_id: int, *, as_json: bool) -> NoR
 
 
 def _report(s: dict[str, Any], server: str) -> None:
+    """The result table; after a failure, where to read why (the reason was said already)."""
     out = render.stdout()
     if s["tasks"]:
         out.print(render.results_table(s))
     if s["state"] in ("failed", "timed_out", "error"):
-        render.stderr().print(
-            Text(f"submission {s['id']} {s['state']}: {s['reason']}\n", style="red")
-            + Text(f"its log: manieval logs {s['id']}{server_flag(server)}")
-        )
+        render.stderr().print(f"its log: manieval logs {s['id']}{server_flag(server)}")
 
 
 def status(
@@ -182,13 +180,22 @@ def logs(submission_id: SubmissionId, server: ServerOption = None) -> None:
     """Print the tail of your policy's log (stdout and stderr) for a submission."""
     with handled(), connect(server, login="required") as client:
         found = client.logs(submission_id)
-    if not found["log_tail"]:
-        render.stderr().print(
-            f"no log for submission {submission_id} (attempt {found['attempt']}) yet"
-        )
-        return
+        if not found["log_tail"]:
+            state = client.submission(submission_id)["state"]
+            render.stderr().print(empty_log_message(submission_id, found["attempt"], state))
+            return
     text = render.printable(found["log_tail"], terminal=sys.stdout.isatty())
     sys.stdout.write(text if text.endswith("\n") else text + "\n")
+
+
+def empty_log_message(submission_id: int, attempt: int, state: str) -> str:
+    """What an empty log means in this state."""
+    which = f"submission {submission_id} (attempt {attempt})"
+    if state in FINAL_STATES:
+        return f"{which} ended {state}; its policy wrote nothing to stdout or stderr"
+    if state == "queued":
+        return f"{which} has not started yet: no log"
+    return f"no log for {which} yet: its policy has written nothing so far"
 
 
 def cancel(submission_id: SubmissionId, server: ServerOption = None) -> None:

@@ -223,8 +223,7 @@ def push(
     as_json: JsonOption = False,
     server: ServerOption = None,
 ) -> None:
-    """Push a local image to the service's registry under your name and submit it, pinned by
-    its digest."""
+    """Push a local image to the service's registry under your name; submit it by digest."""
     if engine is not None and engine not in ENGINES:
         raise typer.BadParameter("podman or docker", param_hint="--engine")
     chosen = require_engine(engine)

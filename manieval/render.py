@@ -68,6 +68,13 @@ def duration(seconds: float) -> str:
     return f"{days} d {hours} h" if hours else f"{days} d"
 
 
+def time_left(elapsed_s: float, done: int, total: int) -> str:
+    """``about 3 min left`` at the pace so far (''  before the first episode or after the last)."""
+    if done <= 0 or done >= total or elapsed_s <= 0:
+        return ""
+    return f"about {duration(elapsed_s / done * (total - done))} left"
+
+
 def state(name: str) -> Text:
     """A state name in its colour."""
     return Text(name, style=STATE_STYLES.get(name, ""))
@@ -75,12 +82,20 @@ def state(name: str) -> Text:
 
 def progress_text(progress: JSON | None) -> str:
     """``3/8 episodes (PickCube-v1, nominal)`` from a submission's progress, or ''."""
-    if not progress or "total" not in progress:
+    if not progress or not progress.get("total"):
         return ""
-    text = f"{progress.get('done', 0)}/{progress['total']} episodes"
-    if progress.get("task"):
-        text += f" ({progress['task']}, {progress.get('condition', '')})"
+    text = f"{progress.get('done') or 0}/{progress['total']} episodes"
+    if where := task_text(progress):
+        text += f" ({where})"
     return text
+
+
+def task_text(progress: JSON | None) -> str:
+    """``PickCube-v1, nominal``: the task and condition of the last episode done, or ''."""
+    if not progress or not progress.get("task"):
+        return ""
+    condition = progress.get("condition")
+    return f"{progress['task']}, {condition}" if condition else str(progress["task"])
 
 
 def challenges_table(items: list[JSON]) -> Table:

@@ -120,6 +120,11 @@ def test_evaluate_exits_1_with_the_reason_when_the_policy_crashes(
     assert "policy_crashed" in done.stderr
     assert "exit code 4" in done.stderr
     assert "missing weights.pt" in done.stderr
+    # The reason first, and no table of zeros that would read as a score.
+    assert done.stdout == ""
+    assert "score" not in done.stderr.replace("no score", "")
+    assert done.stderr.index("evaluation aborted") < done.stderr.index("missing weights.pt")
+    assert "no score: the evaluation did not finish" in done.stderr
 
 
 @pytest.mark.parametrize(

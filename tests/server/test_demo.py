@@ -44,6 +44,9 @@ def test_demo_evaluates_the_examples_and_is_idempotent(tmp_path: Path) -> None:
     assert first.returncode == 0, first.stderr[-3000:]
     assert "submitted local:scripted" in first.stderr
     assert "succeeded" in first.stderr
+    # Without a terminal, progress is a few lines (a quarter each), not one per episode.
+    assert "None" not in first.stderr
+    assert first.stderr.count(" episodes (") <= 2 * 3
     assert "maniskill-core leaderboard" in first.stdout
     assert first.stdout.count("baseline") == 2
     assert (tmp_path / "demo-password").stat().st_mode & 0o077 == 0
@@ -55,3 +58,46 @@ def test_demo_evaluates_the_examples_and_is_idempotent(tmp_path: Path) -> None:
     assert second.returncode == 0, second.stderr[-3000:]
     assert "submitted" not in second.stderr  # finished work is reused
     assert second.stdout.count("baseline") == 2
+
+
+CRASHER = "import sys\nprint('cannot load weights.pt', file=sys.stderr)\nsys.exit(3)\n"
+LAUNCHER = (
+    "import sys, pathlib, evaluator.bundled\n"
+    "evaluator.bundled.EXAMPLES_DIR = pathlib.Path(sys.argv[1])\n"
+    "from manieval.cli import app\n"
+    "app(sys.argv[2:], prog_name='manieval')\n"
+)
+
+
+def test_a_failed_demo_says_what_failed_and_what_to_do_next(tmp_path: Path) -> None:
+    examples = tmp_path / "examples"
+    for name in ("scripted", "random"):  # the demo's two examples, both broken
+        (examples / name).mkdir(parents=True)
+        (examples / name / "policy.py").write_text(CRASHER)
+    env = {
+        **os.environ,
+        "MANIEVAL_DATA_DIR": str(tmp_path / "data"),
+        "MANIEVAL_EMBEDDED_REGISTRY": "false",
+        "MANIEVAL_EMBEDDED_ENGINE": "false",
+    }
+    port = str(free_port())
+    args = ["demo", "--episodes", "1", "--exit-when-done", "--port", port]
+    done = subprocess.run(
+        [sys.executable, "-c", LAUNCHER, str(examples), *args],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 1, done.stderr[-3000:]
+    assert "leaderboard" not in done.stdout  # no empty table
+    err = done.stderr
+    assert "none of the example policies succeeded" in err
+    for image in ("local:scripted", "local:random"):
+        assert f"({image}) failed: " in err
+    assert "exit code 3" in err  # the examples' own reasons
+    assert "cannot load weights.pt" in err  # the end of their logs
+    assert "manieval evaluate --policy examples/policies/random" in err
+    assert "run manieval demo again" in err
+    assert "serving" not in err
+    assert (tmp_path / "data" / "demo.log").exists()
