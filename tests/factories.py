@@ -33,10 +33,13 @@ SUITE = Path(__file__).resolve().parent / "server" / "server_suite.yaml"
 PASSWORD = "correct horse battery staple"
 
 
-def make_user(db: Session, username: str, *, admin: bool = False) -> User:
+def make_user(db: Session, username: str, *, admin: bool = False, verified: bool = True) -> User:
+    """A user with the test password; its address verified unless `verified` is False."""
     user = accounts.register(
         db, username=username, email=f"{username}@example.org", password=PASSWORD, admin=admin
     )
+    if verified:
+        user.email_verified_at = datetime.now(UTC)
     db.commit()
     return user
 

@@ -1,20 +1,28 @@
-"""Account pages: register, log in and out, and the account page with its API tokens."""
+"""Account pages: register, log in and out, the account page with its API tokens and its
+address, and the pages mailed links open (verify an address, reset a password)."""
 
 from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Form, Query, Request
+from fastapi import APIRouter, BackgroundTasks, Depends, Form, Query, Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
 from server.accounts import service as accounts
+from server.accounts import verification
+from server.accounts.mail import duration, letters_for, send_after
+from server.kit import security
 from server.kit.deps import SESSION_COOKIE, DBDep, Id, client_ip, limit, login_throttle, services
-from server.kit.errors import AppError, NotFound, Unauthorized
+from server.kit.errors import AppError, Invalid, NotFound, Unauthorized
 from server.kit.pages import (
+    FORM_COOKIE,
     PostedDep,
     Viewer,
     ViewerDep,
+    _check_form_text,
+    _form_digest,
+    posted,
     redirect,
     render,
     safe_next,
@@ -26,7 +34,12 @@ router = APIRouter(include_in_schema=False)
 
 Text = Annotated[str, Form(max_length=1024)]
 NextPath = Annotated[str, Form(max_length=2000)]
-NOTICES = {"revoked": "The token is revoked: programs using it are refused from now on."}
+TokenQuery = Annotated[str, Query(max_length=200)]
+NOTICES = {
+    "revoked": "The token is revoked: programs using it are refused from now on.",
+    "sent": "We sent a new link to your address: follow it to verify the address.",
+}
+LOGIN_NOTICES = {"reset": "Your password is changed: log in with it."}
 
 
 def _login_response(request: Request, db: DB, user: User, next_path: str) -> Response:
@@ -69,13 +82,15 @@ def register(
     request: Request,
     who: PostedDep,
     db: DBDep,
+    tasks: BackgroundTasks,
     username: Text = "",
     email: Text = "",
     password: Text = "",
     next: NextPath = "",
 ) -> Response:
-    """Create an account and log in with it."""
+    """Create an account, mail a link to verify its address, and log in with it."""
     form = {"username": username, "email": email}
+    settings = services(request).settings
     try:
         limit(request, "register")
         user = accounts.register(
@@ -83,19 +98,27 @@ def register(
             username=username,
             email=email,
             password=password,
-            min_score=services(request).settings.password_min_score,
+            min_score=settings.password_min_score,
         )
+        mail = verification.verification_mail(db, user=user, letters=letters_for(settings, request))
         db.commit()
     except AppError as exc:
         return _form_error(request, who, "register.html", exc, form=form, next=next)
+    send_after(tasks, settings, mail)
     return _login_response(request, db, user, next)
 
 
 @router.get("/login")
 def login_form(
-    request: Request, who: ViewerDep, next: Annotated[str, Query(max_length=2000)] = ""
+    request: Request,
+    who: ViewerDep,
+    next: Annotated[str, Query(max_length=2000)] = "",
+    done: Annotated[str, Query(max_length=20)] = "",
 ) -> Response:
-    return render(request, who, "login.html", errors={}, message="", form={}, next=next)
+    notice = LOGIN_NOTICES.get(done, "")
+    return render(
+        request, who, "login.html", errors={}, message="", form={}, next=next, notice=notice
+    )
 
 
 @router.post("/login")
@@ -127,9 +150,10 @@ def login(
             message="Wrong username, email or password.",
             form=form,
             next=next,
+            notice="",
         )
     except AppError as exc:
-        return _form_error(request, who, "login.html", exc, form=form, next=next)
+        return _form_error(request, who, "login.html", exc, form=form, next=next, notice="")
     return _login_response(request, db, user, next)
 
 
@@ -153,7 +177,14 @@ def _account(
     request: Request, who: Viewer, db: DB, *, status: int = 200, **context: object
 ) -> Response:
     user = signed_in(request, who)
-    context = {"new_token": None, "errors": {}, "message": "", "notice": "", **context}
+    context = {
+        "new_token": None,
+        "errors": {},
+        "message": "",
+        "notice": "",
+        "email_form": {},
+        **context,
+    }
     return render(
         request,
         who,
@@ -197,3 +228,173 @@ def revoke_token(request: Request, token_id: Id, who: PostedDep, db: DBDep) -> R
         raise NotFound(f"no token {token_id}")
     db.commit()
     return redirect("/account?done=revoked#tokens")
+
+
+# The address, and the pages mailed links open -------------------------------------------------
+
+
+async def _posted_logged_out_too(
+    request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] = ""
+) -> Viewer:
+    """As `PostedDep`, for forms people also send logged out (a forgotten password, a mailed
+    link opened in another browser): a visitor's token is bound to the form cookie, as on the
+    login form."""
+    if who.session is None:
+        nonce = request.cookies.get(FORM_COOKIE)
+        key = services(request).csrf_key
+        if nonce and security.csrf_valid(csrf_token, _form_digest(nonce), key):
+            await _check_form_text(request)
+            return who
+    return await posted(request, who, csrf_token)
+
+
+AnyonePostedDep = Annotated[Viewer, Depends(_posted_logged_out_too)]
+
+
+@router.post("/account/email")
+def change_email(
+    request: Request,
+    who: PostedDep,
+    db: DBDep,
+    tasks: BackgroundTasks,
+    email: Text = "",
+    current_password: Text = "",
+) -> Response:
+    """Mail a link to a new address; the account moves there once it is followed."""
+    user = signed_in(request, who)
+    settings = services(request).settings
+    try:
+        limit(request, "login")  # as any password check: bounds the hashing it costs
+        try:
+            accounts.password_login(
+                db,
+                login=user.username,
+                password=current_password,
+                address=client_ip(request),
+                throttle=login_throttle(request),
+            )
+        except Unauthorized:
+            raise Invalid(
+                "The current password is wrong.", fields={"current_password": "Wrong password."}
+            ) from None
+        limit(request, "mail", user=user, key=accounts.normalise_email(email))
+        mail = verification.request_email_change(
+            db, user=user, new_email=email, letters=letters_for(settings, request)
+        )
+        db.commit()
+    except AppError as exc:
+        db.rollback()
+        return _account(
+            request, who, db, errors=exc.fields, message=exc.message, email_form={"email": email}
+        )
+    send_after(tasks, settings, mail)
+    notice = (
+        f"We sent a link to {accounts.normalise_email(email)}: your account uses that address "
+        "once you follow it, and keeps its current one until then."
+    )
+    return _account(request, who, db, notice=notice)
+
+
+@router.post("/account/verify")
+def resend_verification(
+    request: Request, who: PostedDep, db: DBDep, tasks: BackgroundTasks
+) -> Response:
+    """A new link to verify the account's address (the banner's button)."""
+    user = signed_in(request, who)
+    settings = services(request).settings
+    try:
+        limit(request, "mail", user=user, key=user.email)
+        mail = verification.verification_mail(db, user=user, letters=letters_for(settings, request))
+        db.commit()
+    except AppError as exc:
+        return _account(request, who, db, message=exc.message)
+    send_after(tasks, settings, mail)
+    return redirect("/account?done=sent")
+
+
+@router.get("/verify")
+def verify_form(request: Request, who: ViewerDep, token: TokenQuery = "") -> Response:
+    """A mailed verification link opens this page, whose button confirms: mail scanners
+    fetch links, and a GET must not use the token up."""
+    return render(request, who, "verify.html", token=token, verified=None, message="")
+
+
+@router.post("/verify")
+def verify(request: Request, who: AnyonePostedDep, db: DBDep, token: Text = "") -> Response:
+    try:
+        user = verification.verify_email(db, token=token)
+        db.commit()
+    except AppError as exc:
+        return render(request, who, "verify.html", token="", verified=None, message=exc.message)
+    return render(request, who, "verify.html", token="", verified=user.email, message="")
+
+
+@router.get("/forgot-password")
+def forgot_password_form(request: Request, who: ViewerDep) -> Response:
+    return render(request, who, "forgot_password.html", errors={}, message="", form={}, sent="")
+
+
+@router.post("/forgot-password")
+def forgot_password(
+    request: Request, who: AnyonePostedDep, db: DBDep, tasks: BackgroundTasks, email: Text = ""
+) -> Response:
+    """Mail a reset link to the account using `email`, if any: the page is the same either
+    way."""
+    settings = services(request).settings
+    form = {"email": email}
+    letters = letters_for(settings, request)
+    try:
+        limit(request, "mail", key=accounts.normalise_email(email))
+        mail = verification.password_reset_mail(db, email=email, letters=letters)
+        db.commit()
+    except AppError as exc:
+        return _form_error(request, who, "forgot_password.html", exc, form=form, sent="")
+    send_after(tasks, settings, mail)
+    return render(
+        request,
+        who,
+        "forgot_password.html",
+        errors={},
+        message="",
+        form=form,
+        sent=accounts.normalise_email(email),
+        lifetime=duration(letters.reset_for),
+    )
+
+
+@router.get("/reset-password")
+def reset_password_form(
+    request: Request, who: ViewerDep, db: DBDep, token: TokenQuery = ""
+) -> Response:
+    """A mailed reset link opens this form; looking does not use the link up."""
+    works = verification.reset_link_works(db, token=token)
+    return render(
+        request,
+        who,
+        "reset_password.html",
+        token=token if works else "",
+        errors={},
+        message="" if works else verification.BAD_LINK,
+    )
+
+
+@router.post("/reset-password")
+def reset_password(
+    request: Request, who: AnyonePostedDep, db: DBDep, token: Text = "", password: Text = ""
+) -> Response:
+    """Set the new password, then log in with it (every session was ended)."""
+    try:
+        verification.reset_password(
+            db,
+            token=token,
+            password=password,
+            min_score=services(request).settings.password_min_score,
+        )
+        db.commit()
+    except AppError as exc:
+        db.rollback()
+        works = verification.reset_link_works(db, token=token)
+        return _form_error(request, who, "reset_password.html", exc, token=token if works else "")
+    response = redirect("/login?done=reset")
+    response.delete_cookie(SESSION_COOKIE, path="/")
+    return response

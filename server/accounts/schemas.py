@@ -1,8 +1,10 @@
-"""Request and response bodies of the accounts API: registration, login, sessions, tokens."""
+"""Request and response bodies of the accounts API: registration, login, sessions, tokens, and
+the links mailed to verify an address or reset a password."""
 
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Annotated
 
 from pydantic import BaseModel, Field
 
@@ -15,6 +17,35 @@ USERNAME_PATTERN = rf"^{security.USERNAME_GRAMMAR}$"  # as security.validate_use
 EMAIL_PATTERN = r"^[!-?A-~]+@[!-\-/-?A-~][!-?A-~]*\.[!-?A-~]*[!-\-/-?A-~]$"
 
 
+Email = Annotated[
+    str,
+    Field(
+        min_length=3,
+        max_length=254,
+        json_schema_extra={"format": "email", "pattern": EMAIL_PATTERN},
+        description="printable ASCII: one '@', a domain with a dot",
+    ),
+]
+NewPassword = Annotated[
+    str,
+    Field(
+        min_length=security.MIN_PASSWORD_LENGTH,
+        max_length=security.MAX_PASSWORD_LENGTH,
+        description="at least as strong as the server's minimum zxcvbn score (default 3 of 4); "
+        "a 422 says why a password is too weak",
+    ),
+]
+LinkToken = Annotated[
+    str,
+    Field(
+        min_length=43,
+        max_length=43,
+        pattern=r"^[A-Za-z0-9_-]{43}$",
+        description="the `token` parameter of the mailed link",
+    ),
+]
+
+
 class RegisterIn(InBody):
     username: str = Field(
         min_length=3,
@@ -22,18 +53,8 @@ class RegisterIn(InBody):
         pattern=USERNAME_PATTERN,
         description="lowercase letters, digits, '-' and '_'; some names are reserved",
     )
-    email: str = Field(
-        min_length=3,
-        max_length=254,
-        json_schema_extra={"format": "email", "pattern": EMAIL_PATTERN},
-        description="printable ASCII: one '@', a domain with a dot",
-    )
-    password: str = Field(
-        min_length=security.MIN_PASSWORD_LENGTH,
-        max_length=security.MAX_PASSWORD_LENGTH,
-        description="at least as strong as the server's minimum zxcvbn score (default 3 of 4); "
-        "a 422 says why a password is too weak",
-    )
+    email: Email
+    password: NewPassword
 
 
 class LoginIn(InBody):
@@ -49,6 +70,10 @@ class UserOut(BaseModel):
     id: int
     username: str
     email: str
+    email_verified: bool = Field(
+        description="whether the owner followed a link mailed to `email`; some servers "
+        "accept submissions only then"
+    )
     is_admin: bool
     created_at: datetime
 
@@ -73,3 +98,25 @@ class TokenOut(BaseModel):
 
 class NewTokenOut(TokenOut):
     token: str = Field(description="shown once: store it now")
+
+
+class VerifyIn(InBody):
+    token: LinkToken
+
+
+class PasswordResetIn(InBody):
+    email: Email
+
+
+class PasswordResetConfirmIn(InBody):
+    token: LinkToken
+    password: NewPassword
+
+
+class EmailChangeIn(InBody):
+    email: Email = Field(description="the new address: it is used once its link is followed")
+    current_password: str = Field(max_length=1024)
+
+
+class MessageOut(BaseModel):
+    message: str = Field(description="what happened, for people")

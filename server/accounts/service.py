@@ -32,7 +32,10 @@ def register(
     admin: bool = False,
     min_score: int = security.DEFAULT_MIN_SCORE,
 ) -> User:
-    """Create an account, or raise Invalid (field problems) / Conflict (name or email taken)."""
+    """Create an account, or raise Invalid (field problems) / Conflict (name or email taken).
+
+    Its address is unverified (server/accounts/verification.py mails the link), except for an
+    administrator's account, which an operator creates and vouches for."""
     problems: dict[str, str] = {}
     if (problem := security.validate_username(username)) is not None:
         problems["username"] = problem
@@ -54,6 +57,7 @@ def register(
         email=email,
         password_hash=security.hash_password(password),
         is_admin=admin,
+        email_verified_at=utcnow() if admin else None,
     )
     db.add(user)
     try:

@@ -157,6 +157,84 @@ class Settings(BaseSettings):
     password_min_score: int = Field(default=3, ge=0, le=4)
     """Weakest password accepted, as zxcvbn's score (0 guessable in seconds, 4 very strong)."""
 
+    # email (issue 13): verification and password reset links (docs/server.md, Accounts)
+    mail_backend: Literal["folder", "smtp"] = "folder"
+    """``folder``: each mail is written as an ``.eml`` file to ``<data_dir>/mail`` (the embedded
+    default: a laptop needs no mail server); ``smtp``: sent through ``smtp_host``."""
+    mail_from: str = "ManiEval <manieval@localhost>"
+    """The ``From`` of the service's mails."""
+    smtp_host: str = ""
+    smtp_port: int = Field(default=587, ge=1, le=65535)
+    smtp_security: Literal["starttls", "ssl", "none"] = "starttls"
+    """``starttls`` (usually port 587), ``ssl`` (TLS from the start, usually 465) or ``none``
+    (a relay on the loopback address only, when credentials are set)."""
+    smtp_username: str | None = None
+    smtp_password: SecretStr | None = None
+    smtp_ca_file: Path | None = None
+    """CA certificates (PEM) the SMTP server's certificate is checked against; unset: the
+    system's."""
+    smtp_timeout: float = Field(default=10.0, gt=0, le=120)
+    """Seconds the SMTP server may take over each step (mail is sent after the answer: a slow
+    server delays no request)."""
+    public_url: str | None = None
+    """Where people reach the site (``https://manieval.example.org``): mailed links start with
+    it. Unset: the address of the request, which only a local install can trust (a Host header
+    is the client's to choose); required with ``mail_backend=smtp`` outside dev mode."""
+    require_verified_email: bool | None = None
+    """Whether a participant must verify their email address before submitting; unset: yes,
+    except in dev mode."""
+    verify_link_hours: int = Field(default=48, ge=1, le=24 * 30)
+    reset_link_minutes: int = Field(default=60, ge=5, le=24 * 60)
+    mail_rate: Annotated[str, BeforeValidator(Rate.checked)] = "5/hour"
+    """Mails (verification, password reset) one client address, one account and one
+    recipient may each ask for."""
+
+    @model_validator(mode="after")
+    def _check_mail(self) -> Settings:
+        from email.utils import parseaddr
+        from urllib.parse import urlsplit
+
+        if self.mail_backend == "smtp" and not self.smtp_host:
+            raise ValueError("MANIEVAL_SMTP_HOST must be set when MANIEVAL_MAIL_BACKEND=smtp")
+        if self.mail_backend == "smtp" and self.public_url is None and not self.dev_mode:
+            raise ValueError(
+                "MANIEVAL_PUBLIC_URL must be set when MANIEVAL_MAIL_BACKEND=smtp: "
+                "the links in mails start with it"
+            )
+        if self.public_url is not None:
+            url = urlsplit(self.public_url)
+            if (
+                url.scheme not in ("http", "https")
+                or not url.hostname
+                or url.query
+                or url.fragment
+                or not self.public_url.isascii()
+            ):
+                raise ValueError("MANIEVAL_PUBLIC_URL must be like https://manieval.example.org")
+        if (self.smtp_username is None) != (self.smtp_password is None):
+            raise ValueError(
+                "set both MANIEVAL_SMTP_USERNAME and MANIEVAL_SMTP_PASSWORD, or neither"
+            )
+        loopback = self.smtp_host in ("localhost", "127.0.0.1", "::1")
+        if self.smtp_password is not None and self.smtp_security == "none" and not loopback:
+            raise ValueError(
+                "MANIEVAL_SMTP_SECURITY=none would send the SMTP password unencrypted: "
+                "use starttls or ssl"
+            )
+        _, address = parseaddr(self.mail_from)
+        if "@" not in address or any(c in self.mail_from for c in "\r\n"):
+            raise ValueError(
+                "MANIEVAL_MAIL_FROM must be an address like 'ManiEval <x@example.org>'"
+            )
+        return self
+
+    @property
+    def email_verification_required(self) -> bool:
+        """Whether submitting needs a verified address (`require_verified_email`, resolved)."""
+        if self.require_verified_email is None:
+            return not self.dev_mode
+        return self.require_verified_email
+
     @model_validator(mode="after")
     def _check(self) -> Settings:
         for name in ("secret_key", "seed_secret", "worker_token"):

@@ -1,4 +1,4 @@
-"""Accounts: users, their API tokens and their browser sessions."""
+"""Accounts: users, their API tokens, their browser sessions and the links mailed to them."""
 
 from __future__ import annotations
 
@@ -19,6 +19,12 @@ class User(Base):
     password_hash: Mapped[str] = mapped_column(String(256))
     is_admin: Mapped[bool] = mapped_column(Boolean, default=False)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    email_verified_at: Mapped[datetime | None]
+    """When the owner followed a link mailed to `email`; None: not (yet) verified."""
+
+    @property
+    def email_verified(self) -> bool:
+        return self.email_verified_at is not None
 
 
 class ApiToken(Base):
@@ -45,5 +51,25 @@ class Session(Base):
     digest: Mapped[str] = mapped_column(String(64))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     expires_at: Mapped[datetime]
+
+    user: Mapped[User] = relationship(lazy="raise")
+
+
+class EmailToken(Base):
+    """A link mailed to an address: `verify` proves the address is the user's (a new one,
+    on an email change), `reset` sets a new password. Single-use and expiring; only the
+    SHA-256 of its secret is kept, so a copy of the database opens no account."""
+
+    __tablename__ = "email_tokens"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
+    purpose: Mapped[str] = mapped_column(String(16))
+    email: Mapped[str] = mapped_column(String(254))
+    """The address the link was sent to, which following it proves."""
+    digest: Mapped[str] = mapped_column(String(64), unique=True)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[datetime]
+    used_at: Mapped[datetime | None]
 
     user: Mapped[User] = relationship(lazy="raise")

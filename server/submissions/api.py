@@ -88,6 +88,7 @@ def create_submission(body: SubmitIn, request: Request, user: UserDep, db: DBDep
         description=body.description,
         public=body.public,
         resolve=svc.resolve,
+        require_verified_email=svc.settings.email_verification_required,
     )
     db.commit()
     svc.dispatcher.dispatch()  # after the commit; the periodic sweep retries if this fails

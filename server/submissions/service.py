@@ -102,10 +102,17 @@ def submit(
     description: str,
     public: bool,
     resolve: Resolver,
+    require_verified_email: bool = False,
     now: datetime | None = None,
 ) -> Submission:
     """Accept a submission (state `queued`) or raise; the caller commits, then dispatches."""
     now = now or utcnow()
+    if require_verified_email and user.email_verified_at is None:
+        raise Forbidden(
+            f"verify your email address before submitting: follow the link we sent to "
+            f"{user.email}, or ask for a new one on your account page "
+            "(or POST /api/v1/auth/verify/resend)"
+        )
     if len(description) > 2000:
         raise Invalid("description too long", fields={"description": "at most 2000 characters"})
     if not phase.is_open(now):

@@ -162,6 +162,7 @@ def submit_post(
             description=description,
             public=visibility != "private",
             resolve=svc.resolve,
+            require_verified_email=svc.settings.email_verification_required,
         )
         db.commit()
     except AppError as exc:
