@@ -33,6 +33,7 @@ from server.models import (
     User,
     utcnow,
 )
+from server.submissions.changes import changed
 from server.submissions.states import new_attempt, transition
 
 # A submission reserves quota from the moment it is accepted; if it ends in `error` (our
@@ -296,6 +297,7 @@ def edit(
         if value is not None:
             setattr(submission, name, value)
     db.flush()
+    changed(db, submission.id)  # open views check again who may see it
     refresh(db, phase_id=submission.phase_id, user_id=submission.user_id)
 
 

@@ -206,3 +206,23 @@ def test_open_streams_are_bounded_per_client(
     slots.give_back("testclient")
     assert slots.take("someone-else")
     assert slots.take("testclient")
+
+
+def test_a_view_closes_at_once_when_its_submission_is_made_private(
+    live: TestClient, committed_sessions: sessionmaker[Session]
+) -> None:
+    from server.models import Submission, User
+    from server.submissions.service import edit
+
+    sid = queued(committed_sessions, public=True)
+    with live.stream("GET", f"/submissions/{sid}/events") as r:  # anonymous: public only
+        stream = events(r.iter_lines())
+        assert next(e for e in stream if e.name != "comment").name == "transition"
+        with committed_sessions.begin() as db:
+            submission = db.get(Submission, sid)
+            assert submission is not None
+            owner = db.get(User, submission.user_id)
+            assert owner is not None
+            edit(db, user=owner, submission=submission, public=False)
+        # Pushed, not read on a timer (the fixture's streams never read unprompted).
+        assert next(e for e in stream if e.name != "comment").name == "gone"
