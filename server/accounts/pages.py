@@ -5,24 +5,19 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, BackgroundTasks, Depends, Form, Query, Request
+from fastapi import APIRouter, BackgroundTasks, Form, Query, Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
 from server.accounts import service as accounts
 from server.accounts import verification
 from server.accounts.mail import duration, letters_for, send_after
-from server.kit import security
 from server.kit.deps import SESSION_COOKIE, DBDep, Id, client_ip, limit, login_throttle, services
 from server.kit.errors import AppError, Invalid, NotFound, Unauthorized
 from server.kit.pages import (
-    FORM_COOKIE,
     PostedDep,
     Viewer,
     ViewerDep,
-    _check_form_text,
-    _form_digest,
-    posted,
     redirect,
     render,
     safe_next,
@@ -233,24 +228,6 @@ def revoke_token(request: Request, token_id: Id, who: PostedDep, db: DBDep) -> R
 # The address, and the pages mailed links open -------------------------------------------------
 
 
-async def _posted_logged_out_too(
-    request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] = ""
-) -> Viewer:
-    """As `PostedDep`, for forms people also send logged out (a forgotten password, a mailed
-    link opened in another browser): a visitor's token is bound to the form cookie, as on the
-    login form."""
-    if who.session is None:
-        nonce = request.cookies.get(FORM_COOKIE)
-        key = services(request).csrf_key
-        if nonce and security.csrf_valid(csrf_token, _form_digest(nonce), key):
-            await _check_form_text(request)
-            return who
-    return await posted(request, who, csrf_token)
-
-
-AnyonePostedDep = Annotated[Viewer, Depends(_posted_logged_out_too)]
-
-
 @router.post("/account/email")
 def change_email(
     request: Request,
@@ -320,7 +297,7 @@ def verify_form(request: Request, who: ViewerDep, token: TokenQuery = "") -> Res
 
 
 @router.post("/verify")
-def verify(request: Request, who: AnyonePostedDep, db: DBDep, token: Text = "") -> Response:
+def verify(request: Request, who: PostedDep, db: DBDep, token: Text = "") -> Response:
     try:
         user = verification.verify_email(db, token=token)
         db.commit()
@@ -336,7 +313,7 @@ def forgot_password_form(request: Request, who: ViewerDep) -> Response:
 
 @router.post("/forgot-password")
 def forgot_password(
-    request: Request, who: AnyonePostedDep, db: DBDep, tasks: BackgroundTasks, email: Text = ""
+    request: Request, who: PostedDep, db: DBDep, tasks: BackgroundTasks, email: Text = ""
 ) -> Response:
     """Mail a reset link to the account using `email`, if any: the page is the same either
     way."""
@@ -380,7 +357,7 @@ def reset_password_form(
 
 @router.post("/reset-password")
 def reset_password(
-    request: Request, who: AnyonePostedDep, db: DBDep, token: Text = "", password: Text = ""
+    request: Request, who: PostedDep, db: DBDep, token: Text = "", password: Text = ""
 ) -> Response:
     """Set the new password, then log in with it (every session was ended)."""
     try:

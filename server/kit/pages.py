@@ -38,7 +38,11 @@ WEB_DIR = ROOT / "web"
 TEMPLATES_DIR = WEB_DIR / "templates"
 STATIC_DIR = WEB_DIR / "static"
 FORM_COOKIE = "manieval_form"
-ANONYMOUS_FORMS = frozenset({"/login", "/register"})
+# Forms people also send logged out (a mailed link opened in another browser): a visitor's
+# token is bound to the form cookie.
+ANONYMOUS_FORMS = frozenset(
+    {"/login", "/register", "/verify", "/forgot-password", "/reset-password"}
+)
 """The only forms a token bound to the form cookie (not to a session) may post."""
 # Paths for programs, whose errors stay the API's JSON body.
 MACHINE_PATHS = (
@@ -155,8 +159,8 @@ ViewerDep = Annotated[Viewer, Depends(viewer)]
 async def posted(
     request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] = ""
 ) -> Viewer:
-    """The viewer of a form POST, whose CSRF token must match the session, or on the login and
-    register forms the form cookie (a form loaded before logging in elsewhere); otherwise 403
+    """The viewer of a form POST, whose CSRF token must match the session, or on the forms of
+    `ANONYMOUS_FORMS` the form cookie (a form loaded before logging in elsewhere); otherwise 403
     and nothing is done. Every field must be text the server can store (else 422)."""
     key = services(request).csrf_key
     nonce = request.cookies.get(FORM_COOKIE)
