@@ -69,12 +69,12 @@ def run_demo(
     if not service.start():
         console.print(f"[red]the server could not start on {url} (port in use?)[/]")
         return 1
-    console.print(f"ManiEval is running at [bold]{url}[/] (API docs: {url}/docs)")
-    console.print(f"data: {settings.data_dir} (log: {log_path})")
-    console.print(f"log in as [bold]demo[/] / {password}")
-    if engines is not None and engines.registry_domain is not None:
-        _print_participant_path(url, engines.registry_domain)
-    try:
+    try:  # from here a Ctrl-C stops the service, and its runs are recorded as interrupted
+        console.print(f"ManiEval is running at [bold]{url}[/] (API docs: {url}/docs)")
+        console.print(f"data: {settings.data_dir} (log: {log_path})")
+        console.print(f"log in as [bold]demo[/] / {password}")
+        if engines is not None and engines.registry_domain is not None:
+            _print_participant_path(url, engines.registry_domain)
         with handled(), Client(url) as anonymous:
             token = anonymous.create_token(login="demo", password=password, name="demo")["token"]
         with handled(), Client(url, token=token) as client:
@@ -89,6 +89,9 @@ def run_demo(
         pass
     finally:
         service.stop()
+    if service.interrupted:
+        runs = ", ".join(map(str, service.interrupted))
+        console.print(f"stopped: submissions {runs} were interrupted; they run again next time")
     return 0
 
 

@@ -23,10 +23,13 @@ def serve(
     """Run the service: the API and, on the embedded default, its worker (migrating the
     database first)."""
     from internal_api.logs import configure_logging
-    from manieval.service import Service
+    from manieval.quiet import quiet_third_party
+    from manieval.service import Service, end_process
 
     s = settings()
     configure_logging(s.log_format, s.log_level)
+    if s.queue == "inline":  # the simulator runs in this process: its warnings, once each
+        quiet_third_party(s.data_dir / "simulator.log")
     if migrate:
         sessions = migrated_sessions(s)
     else:
@@ -47,6 +50,7 @@ def serve(
     if engines.registry_domain is not None:
         console.print(f"registry: {engines.registry_domain}  (manieval push IMAGE --challenge ...)")
     service.run()
+    end_process(0)
 
 
 def demo(
@@ -59,14 +63,23 @@ def demo(
 ) -> None:
     """Run the service locally with the example policies evaluated on the leaderboard."""
     import os
+    import signal
 
     from manieval.demo import run_demo
+    from manieval.service import end_process
+
+    # SIGTERM stops the demo as Ctrl-C does: the service stops what runs and records it.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
 
     os.environ.setdefault("MANIEVAL_DEV_MODE", "true")
     os.environ.setdefault("MANIEVAL_ALLOW_LOCAL_POLICIES", "true")
     os.environ.setdefault("MANIEVAL_COOKIE_SECURE", "false")
     os.environ.setdefault("MANIEVAL_INLINE_WORKERS", str(min(2, os.cpu_count() or 1)))
-    code = run_demo(
-        settings(), host=host, port=port, episodes=episodes, exit_when_done=exit_when_done
-    )
+    try:
+        code = run_demo(
+            settings(), host=host, port=port, episodes=episodes, exit_when_done=exit_when_done
+        )
+    except KeyboardInterrupt:  # a second Ctrl-C while stopping: what still runs ends with us
+        code = 130
+    end_process(code)
     raise typer.Exit(code)

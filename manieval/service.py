@@ -7,21 +7,35 @@ the loopback address with the worker token, through ``/internal/v1``. `manieval 
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
+import signal
+import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
+from types import FrameType
 
 import uvicorn
 from sqlalchemy.orm import Session, sessionmaker
 
 from manieval.engines import Engines
 from server.app import create_app
+from server.kit.db import make_engine, session_factory
 from server.kit.settings import Settings
 from server.submissions.images import image_resolver
 from server.submissions.service import ImageGate
-from worker.embedded import EmbeddedWorker
+from server.submissions.work import end_stopped
+from worker.embedded import EmbeddedWorker, evaluating_threads
 from worker.settings import WorkerSettings
 
+log = logging.getLogger(__name__)
+
 EMBEDDED_WORKER = "embedded"
+WORKER_STOP_S = 20.0
+"""How long a stop waits for the evaluations in flight (each stops within about a second)."""
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def embedded_worker_settings(
@@ -41,12 +55,62 @@ def embedded_worker_settings(
     return worker.model_copy(update={"docker_engine_url": engine_url})
 
 
+class _Server(uvicorn.Server):
+    """uvicorn, whose stop signal (Ctrl-C, SIGTERM) first stops what runs next to it.
+
+    The server keeps answering while `before_exit` stops the evaluations in flight, so their
+    last requests land; then it shuts down. A second Ctrl-C stops it at once.
+    """
+
+    def __init__(self, config: uvicorn.Config, *, before_exit: Callable[[], None]) -> None:
+        super().__init__(config)
+        self._before_exit = before_exit
+        self._stopping: threading.Thread | None = None
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        # uvicorn's own raises the signal again after its shutdown: SIGTERM's default action
+        # would end the process before the service stopped its engines, and SIGINT would exit
+        # 130 through a KeyboardInterrupt. The service ends by itself, with 0, once stopped.
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        original = {sig: signal.signal(sig, self.handle_exit) for sig in STOP_SIGNALS}
+        try:
+            yield
+        finally:
+            for sig, handler in original.items():
+                signal.signal(sig, handler)
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        if self._stopping is None:
+            # Not in the signal handler: the event loop it interrupts serves the worker.
+            self._stopping = threading.Thread(
+                target=self._stop_then_exit, name="manieval-stop", daemon=True
+            )
+            self._stopping.start()
+        else:
+            self.should_exit = True
+            self.force_exit = sig == signal.SIGINT
+
+    def _stop_then_exit(self) -> None:
+        try:
+            self._before_exit()
+        finally:
+            self.should_exit = True
+
+
 class Service:
     """`start()` in a thread (demo, tests) or `run()` in the foreground (serve).
 
     With `engines` (serve, demo) the registry and the container engine start first, are
     supervised while the server runs, and stop after it; image submissions are refused, with
     the reason, while they are missing or down.
+
+    A stop (Ctrl-C, SIGTERM, `stop()`) goes in this order: the embedded worker interrupts the
+    evaluations in flight (their policy processes and containers removed), the server records
+    them as interrupted and queues them again (no quota used, runs again at the next start),
+    the server shuts down, then the engines stop.
     """
 
     def __init__(
@@ -66,6 +130,11 @@ class Service:
             settings = engines.server_settings()
             resolve = ImageGate(image_resolver(settings), engines.refusal)
         self.settings = settings
+        self.sessions = sessions or session_factory(make_engine(settings.resolved_database_url))
+        self.interrupted: list[int] = []
+        """Submissions the last stop interrupted (queued again)."""
+        self._work_lock = threading.Lock()
+        self._work_stopped = False
         if settings.queue == "inline":
             worker_settings = embedded_worker_settings(
                 settings, port=port, engine_url=engines.engine_url if engines else None
@@ -73,11 +142,11 @@ class Service:
             self.worker = EmbeddedWorker(worker_settings, threads=settings.inline_workers)
         app = create_app(
             settings,
-            sessions=sessions,
+            sessions=self.sessions,
             work=self.worker.queue if self.worker else None,
             resolve=resolve,
         )
-        self.server = uvicorn.Server(
+        self.server = _Server(
             uvicorn.Config(
                 app,
                 host=host,
@@ -85,7 +154,8 @@ class Service:
                 log_config=None,
                 proxy_headers=True,
                 timeout_graceful_shutdown=5,  # open live streams must not hold a Ctrl-C
-            )
+            ),
+            before_exit=self.stop_work,
         )
         self._thread: threading.Thread | None = None
         self._worker_thread = threading.Thread(
@@ -97,12 +167,14 @@ class Service:
         return self.engines.start() if self.engines is not None else []
 
     def run(self) -> None:
-        """Serve until interrupted (Ctrl-C, SIGTERM); start `start_engines()` first."""
+        """Serve until interrupted (Ctrl-C, SIGTERM), then stop everything and return; start
+        `start_engines()` first."""
         self._worker_thread.start()
         try:
             self.server.run()
         finally:
-            self._stop_worker()
+            if not self.server.force_exit:  # a second Ctrl-C: `end_process` ends what runs
+                self.stop_work()  # done already when a signal stopped the server
             self._stop_engines()
 
     def start(self) -> bool:
@@ -123,11 +195,34 @@ class Service:
             self._thread.join()
 
     def stop(self) -> None:
+        """Stop the evaluations in flight (recorded, queued again), the server, the engines."""
+        self.stop_work()
         self.server.should_exit = True
         if self._thread is not None:
             self._thread.join(timeout=30)
-        self._stop_worker()
         self._stop_engines()
+
+    def stop_work(self) -> None:
+        """Interrupt the embedded worker's evaluations and record them as interrupted: `error`
+        of ours (no quota), queued again (`interrupted`); once, whoever calls first."""
+        with self._work_lock:
+            if self._work_stopped:
+                return
+            self._work_stopped = True
+            if self.worker is None:
+                return
+            if not self.worker.stop(timeout=WORKER_STOP_S):
+                log.warning("an evaluation did not stop within %.0f s", WORKER_STOP_S)
+            if not self.worker.started:
+                return  # it claimed nothing: what a crashed run left is for the next start
+            try:
+                with self.sessions.begin() as db:
+                    self.interrupted = end_stopped(db, worker=self.worker.settings.worker_name)
+            except Exception:  # the database is down: the next start ends them (run again once)
+                log.exception("the interrupted evaluations could not be recorded")
+                return
+            if self.interrupted:
+                log.info("submissions %s interrupted: queued again", self.interrupted)
 
     def _stop_engines(self) -> None:
         if self.engines is not None:
@@ -141,6 +236,23 @@ class Service:
         if not self.server.should_exit:
             self.worker.start()
 
-    def _stop_worker(self) -> None:
-        if self.worker is not None:
-            self.worker.stop(timeout=5)
+
+def end_process(code: int) -> None:
+    """Return when the process may exit normally; else flush and end it now with `code`.
+
+    An evaluation that outlived the stop (`WORKER_STOP_S`) may still be inside SAPIEN or torch:
+    the interpreter's exit would then destroy their running C++ threads and abort the process
+    (``terminate called without an active exception``, exit 134). Everything of ours is done
+    by now (the database committed, the engines stopped), so `os._exit` loses nothing but
+    that thread; its policy process ends with us (bubblewrap's ``--die-with-parent``) and the
+    next start's reconciler removes a container it leaves.
+    """
+    stuck = evaluating_threads()
+    if not stuck:
+        return
+    log.warning("%s still evaluating after the stop: ending the process", ", ".join(stuck))
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):  # a closed or broken stream: nothing to keep
+            stream.flush()
+    os._exit(code)

@@ -76,19 +76,33 @@ def run_next(api: ServerAPI, settings: WorkerSettings) -> tuple[int, State | Non
 
 def execute(api: ServerAPI, settings: WorkerSettings, handed: Assignment) -> State | None:
     """Run a claimed (`launching`) attempt; returns the state it ended in (None: unknown,
-    its final report waits in the spool)."""
+    its final report waits in the spool, or the worker was stopped under it).
+
+    A stop of the worker (`api.stop`) interrupts the evaluation within about a second, its
+    policy process or container gone, and reports nothing: what was cut short is no result
+    of the policy's, and the attempt stays in flight for whoever stopped the worker to record
+    (the embedded service queues it again, `server.submissions.work.end_stopped`).
+    """
     sid, attempt = handed.submission_id, handed.attempt
     if settings.executor == "kubernetes" and not handed.image.startswith(LOCAL_PREFIX):
         from worker.kubernetes.watch import run_as_job
 
-        return run_as_job(api, settings, handed)
+        # A stop ends the watch at once: the embedded service records the attempt interrupted,
+        # and the reconciler removes its Job (no longer an active attempt's).
+        return run_as_job(api, settings, handed, stop=api.stop)
     try:
         source = policy_source(handed.image, settings, submission_id=sid, attempt=attempt)
         pull = getattr(source, "pull", None)
         if pull is not None:
             pull()  # before `running`: pulling time is not the policy's budget
     except Exception as exc:  # our configuration: error, with the reason
+        if api.stop.is_set():
+            _interrupted(sid, attempt)
+            return None
         return api.final(sid, attempt, ended(State.ERROR, f"cannot run: {exc}"))
+    if api.stop.is_set():
+        _interrupted(sid, attempt)
+        return None
 
     plan = handed.plan
     deadline_s = wall_clock_limit_s(plan)
@@ -98,12 +112,23 @@ def execute(api: ServerAPI, settings: WorkerSettings, handed: Assignment) -> Sta
     try:
         result = _evaluate(api, sid, attempt, plan, source)
     except Exception as exc:
+        if api.stop.is_set():  # whatever broke while stopping is no fault to report
+            log.warning("submission %s stopped with %s: %s", sid, type(exc).__name__, exc)
+            _interrupted(sid, attempt)
+            return None
         log.exception("evaluation of submission %s attempt %s crashed", sid, attempt)
         reason = f"the evaluator failed: {type(exc).__name__}: {exc}"
         return api.final(sid, attempt, ended(State.ERROR, reason))
+    if result is None:
+        _interrupted(sid, attempt)
+        return None
     if isinstance(result, State):  # ended elsewhere (cancelled, timed out): already recorded
         return result
     return api.final(sid, attempt, conclusion(result))
+
+
+def _interrupted(sid: int, attempt: int) -> None:
+    log.info("submission %s attempt %s interrupted: the worker is stopping", sid, attempt)
 
 
 def wall_clock_limit_s(plan: EvaluationPlan) -> float:
@@ -118,8 +143,9 @@ def wall_clock_limit_s(plan: EvaluationPlan) -> float:
 
 def _evaluate(
     api: ServerAPI, sid: int, attempt: int, plan: EvaluationPlan, source: PolicySource
-) -> EvaluationResult | State:
-    """The result, or the state the attempt was ended in elsewhere while it ran."""
+) -> EvaluationResult | State | None:
+    """The result, or the state the attempt was ended in elsewhere while it ran, or None when
+    the worker's stop interrupted it."""
     from evaluator.evaluation import evaluate
 
     total = plan.episode_count()
@@ -128,10 +154,19 @@ def _evaluate(
     progress: dict[str, Any] = {"done": 0, "total": total}
     stopped = threading.Event()
     stopped_as: list[State] = []
+    interrupted = threading.Event()
     finished = threading.Event()
     lock = threading.Lock()
 
+    def should_stop() -> bool:
+        if api.stop.is_set():
+            interrupted.set()
+            return True
+        return stopped.is_set()
+
     def send() -> None:
+        if api.stop.is_set():  # stopping: nothing of this run is reported any more
+            return
         with lock:
             snapshot = dict(progress)
         try:
@@ -164,8 +199,10 @@ def _evaluate(
     beat = threading.Thread(target=heartbeat, name=f"heartbeat-{sid}", daemon=True)
     beat.start()
     try:
-        result = evaluate(plan, source, on_episode=report, should_stop=stopped.is_set)
+        result = evaluate(plan, source, on_episode=report, should_stop=should_stop)
     finally:
         finished.set()
         beat.join()
-    return stopped_as[0] if stopped_as else result
+    if stopped_as:
+        return stopped_as[0]
+    return None if interrupted.is_set() else result

@@ -30,12 +30,15 @@ from server.models.challenges import Challenge, Phase
 
 class Cause(enum.StrEnum):
     """Why an attempt ended `error` through no fault of the policy's, where the reconciler acts
-    on it (a lost attempt runs again once): a typed column, never text to match."""
+    on it (a lost attempt runs again once, a stopped one always): a typed column, never text to
+    match."""
 
     WORKER_LOST = "worker_lost"
     WORKER_RESTARTED = "worker_restarted"
     CLUSTER = "cluster"
     """The Kubernetes cluster stopped it (evicted, preempted, unschedulable, quota, node lost)."""
+    STOPPED = "stopped"
+    """The service was stopped (Ctrl-C, SIGTERM) while it ran: queued again, every time."""
 
 
 # What counts against a quota: work the participant caused. Our errors and cancels do not.

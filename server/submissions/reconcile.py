@@ -30,12 +30,17 @@ from server.submissions.states import new_attempt, transition
 log = logging.getLogger(__name__)
 
 LOST_CAUSES = frozenset({Cause.WORKER_LOST, Cause.WORKER_RESTARTED, Cause.CLUSTER})
-"""Causes that are ours, not the policy's: the attempt runs again, once per submission."""
+"""Causes that are ours, not the policy's: the attempt runs again, once per submission (a
+second loss may be the policy's doing: a worker it crashes, a node it exhausts)."""
 _WHAT = {
     Cause.WORKER_LOST: "the worker evaluating it stopped responding",
     Cause.WORKER_RESTARTED: "the worker evaluating it restarted",
     Cause.CLUSTER: "the cluster stopped the evaluation",
+    Cause.STOPPED: "interrupted: the service was stopped",
 }
+_AGAIN = {Cause.STOPPED: "interrupted: the service was stopped; queued again"}
+"""The re-queued attempt's reason (what its owner reads while it waits), where `<what>:
+running it again` would not be true: after a stop it runs when the service starts again."""
 
 
 @dataclass(frozen=True)
@@ -138,12 +143,13 @@ def end_lost(
     **values: object,
 ) -> bool | None:
     """End an attempt that died through no fault of the policy's (its worker lost or restarted,
-    the cluster stopped it): `error` (ours, no quota) and, the first time this submission loses
-    one, queued again as a new attempt. `detail` says what happened instead of the cause's
-    stock phrase; `values` are stored with the ended attempt (its log tail). True: queued
-    again; False: left `error`; None: it had already moved on."""
+    the cluster stopped it, the service was stopped): `error` (ours, no quota) and queued again
+    as a new attempt: always after a stop, else the first time this submission loses one.
+    `detail` says what happened instead of the cause's stock phrase; `values` are stored with
+    the ended attempt (its log tail). True: queued again; False: left `error`; None: it had
+    already moved on."""
     now = now or utcnow()
-    earlier = db.scalar(
+    earlier = cause in LOST_CAUSES and db.scalar(
         select(func.count())
         .select_from(Transition)
         .where(Transition.submission_id == s.id, Transition.cause.in_(LOST_CAUSES))
@@ -160,7 +166,7 @@ def end_lost(
         return new_attempt(
             db,
             s,
-            f"{_WHAT[cause]}: running it again",
+            _AGAIN.get(cause, f"{_WHAT[cause]}: running it again"),
             from_states=frozenset({State.ERROR}),
             now=now,
         )

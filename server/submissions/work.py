@@ -1,5 +1,5 @@
-"""Work for the workers: fair claims, the evaluation an attempt runs, a restarted worker's
-attempts. The internal API (`internal.py`) is its only caller.
+"""Work for the workers: fair claims, the evaluation an attempt runs, a restarted or stopped
+worker's attempts. The internal API (`internal.py`) is its only caller.
 
 A worker does not run "the message it was given": it claims the next submission by a fair
 order, with a conditional update that only one worker can win. So a message delivered twice,
@@ -121,5 +121,22 @@ def end_restarted(db: DB, *, worker: str) -> list[int]:
         )
     ):
         if end_lost(db, s, cause=Cause.WORKER_RESTARTED) is not None:
+            ended.append(s.id)
+    return ended
+
+
+def end_stopped(db: DB, *, worker: str) -> list[int]:
+    """The service stopped `worker` mid-evaluation (Ctrl-C, SIGTERM): the attempts it had
+    claimed and not ended were interrupted. They end `error` (ours: no quota) and are queued
+    again, every time: a stop is the operator's doing, not a sign of a policy that crashes
+    its worker."""
+    ended = []
+    for s in db.scalars(
+        select(Submission).where(
+            Submission.worker == worker,
+            Submission.state.in_([State.LAUNCHING, State.RUNNING]),
+        )
+    ):
+        if end_lost(db, s, cause=Cause.STOPPED) is not None:
             ended.append(s.id)
     return ended

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import psutil
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
@@ -23,6 +24,7 @@ from server.app import create_app
 from server.kit.db import make_engine, session_factory
 from server.kit.settings import Settings
 from server.models import Cause, Submission, Transition
+from server.submissions.work import end_stopped
 from tests.cli.conftest import running_server
 from tests.factories import PASSWORD, embedded_database, token_for
 from tests.workers import server_api, worker_settings
@@ -181,14 +183,24 @@ def test_a_crashing_policy_ends_failed_with_its_log_for_the_owner_only(
 # A restart ------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGKILL], ids=["ctrl-c", "crash"])
-def test_a_restarted_server_ends_its_runs_in_flight_and_runs_them_once_more(
-    tmp_path: Path, stop: signal.Signals
+STOPPED = ("interrupted: the service was stopped; queued again", Cause.STOPPED)
+RESTARTED = ("the worker evaluating it restarted; queued again", Cause.WORKER_RESTARTED)
+
+
+@pytest.mark.parametrize(
+    ("stop", "expected"),
+    [(signal.SIGINT, STOPPED), (signal.SIGTERM, STOPPED), (signal.SIGKILL, RESTARTED)],
+    ids=["ctrl-c", "sigterm", "crash"],
+)
+def test_a_stopped_or_crashed_server_runs_its_runs_in_flight_again(
+    tmp_path: Path, stop: signal.Signals, expected: tuple[str, Cause]
 ) -> None:
-    # `manieval serve` in a process of its own: stopped (Ctrl-C) or killed in the middle of an
-    # evaluation, then started again on the same data. Its embedded worker, at start, tells
-    # the server it restarted: the attempt that died with it ends `error` (ours: no quota),
-    # with that cause, and runs once more as attempt 2.
+    # `manieval serve` in a process of its own: stopped (Ctrl-C, SIGTERM) or killed in the
+    # middle of an evaluation, then started again on the same data. A stop interrupts the run
+    # and records it as interrupted, queued again (every time); after a crash the embedded
+    # worker, at its next start, tells the server it restarted (the run goes again once).
+    # Either way the attempt ends `error` (ours: no quota) with its cause, and attempt 2 runs.
+    reason, cause = expected
     data = tmp_path / "data"
     with httpx.Client(timeout=60) as http:
         with running_server(data, stop=stop) as first:
@@ -211,7 +223,7 @@ def test_a_restarted_server_ends_its_runs_in_flight_and_runs_them_once_more(
             again = wait_running(http, headers, sid, attempt=2)
             ended = [t for t in again["transitions"] if t["attempt"] == 1][-1]
             assert ended["to_state"] == "error"
-            assert ended["reason"] == "the worker evaluating it restarted; queued again"
+            assert ended["reason"] == reason
             assert [t["to_state"] for t in again["transitions"]] == [
                 "queued",
                 "launching",
@@ -234,16 +246,16 @@ def test_a_restarted_server_ends_its_runs_in_flight_and_runs_them_once_more(
                 Transition.submission_id == sid, Transition.cause.is_not(None)
             )
         ).all()
-        assert causes == [Cause.WORKER_RESTARTED]
+        assert causes == [cause]
 
 
-def test_a_run_that_outlives_the_stopped_worker_still_reports_and_spools_nothing_of_ours(
+def test_a_stopped_worker_interrupts_its_run_and_reports_nothing_of_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # `manieval serve` stopping gives the worker's threads a few seconds, then the process ends
-    # under a run still going. Until then that run's reports must still go out (or fail as an
-    # outage would): never end it in an `error` of ours, kept in the spool and sent at the next
-    # start, where the restart should have run it again.
+    # The worker stopping under a run (its first report held until the stop): the run stops
+    # within seconds, its policy process gone, and nothing of it is reported or spooled: cut
+    # short, it is no result of the policy's, and no error of ours to end it with. It stays
+    # in flight for whoever stopped the worker to record (the service: `end_stopped`).
     settings = Settings(
         dev_mode=True, data_dir=tmp_path, cookie_secure=False, allow_local_policies=True
     )
@@ -252,15 +264,21 @@ def test_a_run_that_outlives_the_stopped_worker_still_reports_and_spools_nothing
     worker = EmbeddedWorker(wsettings)
     app = create_app(settings, sessions=sessions, work=worker.queue)
     api = server_api(app, wsettings)
-    reporting, stopped = threading.Event(), threading.Event()
-    progress = api.progress
+    reporting = threading.Event()
+    progress, final = api.progress, api.final
+    finals: list[Any] = []
 
     def held_until_stopped(*args: Any, **kwargs: Any) -> Any:
         reporting.set()
-        stopped.wait(300)
+        api.stop.wait(300)
         return progress(*args, **kwargs)
 
+    def recorded(*args: Any, **kwargs: Any) -> Any:
+        finals.append(args)
+        return final(*args, **kwargs)
+
     monkeypatch.setattr(api, "progress", held_until_stopped)
+    monkeypatch.setattr(api, "final", recorded)
     with TestClient(app) as client:
         try:
             client.post(
@@ -272,15 +290,46 @@ def test_a_run_that_outlives_the_stopped_worker_still_reports_and_spools_nothing
             r = client.post(
                 f"{API}/submissions",
                 headers=headers,
-                json={"challenge": "server-tiny", "image": "local:scripted"},
+                json={"challenge": "server-long", "image": "local:random"},
             )
             assert r.status_code == 202, r.text
+            sid = r.json()["id"]
             assert reporting.wait(240), "the run sent no progress"
-            worker.stop(timeout=0.1)  # the run is past its first report: it goes on
-            stopped.set()
-            body = wait_final(client, headers, r.json()["id"])
-            assert body["state"] == "succeeded", body
+            policies = _policy_processes()
+            assert policies, "no policy process runs"
+            assert worker.stop(timeout=60), "the run did not stop"
+            assert not [p for p in policies if _alive(p)]
+            assert finals == []
             assert list(api.spool) == []
+            body = client.get(f"{API}/submissions/{sid}", headers=headers).json()
+            assert (body["state"], body["attempt"]) == ("running", 1)
+            with sessions.begin() as db:
+                assert end_stopped(db, worker=EMBEDDED_WORKER) == [sid]
+            body = client.get(f"{API}/submissions/{sid}", headers=headers).json()
+            assert (body["state"], body["attempt"]) == ("queued", 2)
+            assert body["reason"] == "interrupted: the service was stopped; queued again"
         finally:
-            stopped.set()
             worker.stop(timeout=30)
+
+
+def _policy_processes() -> list[psutil.Process]:
+    """This process's policy processes (the sandbox and the policy in it)."""
+    return [
+        p
+        for p in psutil.Process().children(recursive=True)
+        if any("policy" in part for part in _cmdline(p))
+    ]
+
+
+def _cmdline(process: psutil.Process) -> list[str]:
+    try:
+        return process.cmdline()
+    except psutil.Error:
+        return []
+
+
+def _alive(process: psutil.Process) -> bool:
+    try:
+        return process.is_running() and process.status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
