@@ -59,9 +59,8 @@ class Embedded:
         }
 
 
-@contextmanager
-def embedded_service(work: Path) -> Iterator[Embedded]:
-    """`manieval serve` on embedded defaults: it starts the registry and Podman's API."""
+def build_base_image() -> None:
+    """Podman, docker-registry and the policy base image (built once, then cached)."""
     require_podman()
     require_tool("docker-registry")
     built = subprocess.run(
@@ -72,18 +71,33 @@ def embedded_service(work: Path) -> Iterator[Embedded]:
         timeout=900,
     )
     assert built.returncode == 0, built.stderr[-3000:]
+
+
+def data_with_challenge(
+    work: Path, name: str, suite_text: str, options: ChallengeOptions
+) -> tuple[Path, Path]:
+    """A data directory (`work/data`) whose database holds the challenge of `suite_text`,
+    written to `work/<name>.yaml`: (the data directory, the suite file)."""
     data = work / "data"
-    suite = work / "push-tiny.yaml"
-    suite.write_text(TINY_SUITE)
+    suite = work / f"{name}.yaml"
+    suite.write_text(suite_text)
     settings = Settings(dev_mode=True, data_dir=data, cookie_secure=False)
     upgrade(settings.resolved_database_url)
-    with session_factory(make_engine(settings.resolved_database_url)).begin() as db:
-        load_challenge(
-            db,
-            suite,
-            ChallengeOptions(quota_per_day=50, quota_concurrent=3),
-            seed_secret=settings.secret("seed_secret"),
-        )
+    engine = make_engine(settings.resolved_database_url)
+    try:
+        with session_factory(engine).begin() as db:
+            load_challenge(db, suite, options, seed_secret=settings.secret("seed_secret"))
+    finally:
+        engine.dispose()
+    return data, suite
+
+
+@contextmanager
+def embedded_service(work: Path) -> Iterator[Embedded]:
+    """`manieval serve` on embedded defaults: it starts the registry and Podman's API."""
+    build_base_image()
+    options = ChallengeOptions(quota_per_day=50, quota_concurrent=3)
+    data, suite = data_with_challenge(work, "push-tiny", TINY_SUITE, options)
     registry = f"127.0.0.1:{free_port()}"
     extra = {
         "MANIEVAL_EMBEDDED_REGISTRY": "true",

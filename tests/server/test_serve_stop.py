@@ -26,17 +26,23 @@ from docker.client import DockerClient
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.kit.db import make_engine, session_factory, upgrade
+from server.kit.db import make_engine, session_factory
 from server.kit.settings import Settings
 from server.models import Cause, State, Submission, Transition, utcnow
 from server.submissions.reports import report_state
 from server.submissions.service import quota_use
 from server.submissions.work import claim_next, end_restarted, end_stopped
 from tests.cli.conftest import REPO, LiveServer, Participant, clean_environment, free_port
-from tests.cli.push_support import TAG, Embedded, build_template, remove_images
+from tests.cli.push_support import (
+    TAG,
+    Embedded,
+    build_base_image,
+    build_template,
+    data_with_challenge,
+    remove_images,
+)
 from tests.factories import PASSWORD, make_challenge, make_user, queue_submission
 from tests.server.registry_fixture import require_tool
-from tests.worker.container_fixtures import BASE_BUILD, CONTAINERS_CONF, require_podman
 from worker.containers import LABEL_ATTEMPT, LABEL_SUBMISSION
 
 INTERRUPTED = "interrupted: the service was stopped; queued again"
@@ -323,30 +329,11 @@ def _policy_containers(data: Path, sid: int) -> list[str]:
 def test_sigterm_on_serve_removes_the_policy_container_and_the_next_start_runs_it(
     tmp_path: Path,
 ) -> None:
-    from server.challenges.service import ChallengeOptions, load_challenge
+    from server.challenges.service import ChallengeOptions
 
-    require_podman()
-    require_tool("docker-registry")
-    built = subprocess.run(
-        [str(BASE_BUILD)],
-        env={**os.environ, "CONTAINERS_CONF": str(CONTAINERS_CONF)},
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
-    assert built.returncode == 0, built.stderr[-3000:]
-    data = tmp_path / "data"
-    suite = tmp_path / "stop-long.yaml"
-    suite.write_text(SUITE)
-    settings = Settings(dev_mode=True, data_dir=data, cookie_secure=False)
-    upgrade(settings.resolved_database_url)
-    with _sessions(settings.resolved_database_url).begin() as db:
-        load_challenge(
-            db,
-            suite,
-            ChallengeOptions(quota_per_day=5, quota_concurrent=1),
-            seed_secret=settings.secret("seed_secret"),
-        )
+    build_base_image()
+    options = ChallengeOptions(quota_per_day=5, quota_concurrent=1)
+    data, suite = data_with_challenge(tmp_path, "stop-long", SUITE, options)
     registry = f"127.0.0.1:{free_port()}"
     extra = SERVE_ENV | {"MANIEVAL_EMBEDDED_REGISTRY_ADDR": registry}
     tag = f"localhost/stop-policy:{TAG}"
