@@ -80,7 +80,7 @@ def runtime_cleaners(settings: WorkerSettings) -> list[Cleaner]:
     if settings.executor == "kubernetes":
 
         def clean_jobs(active: set[tuple[int, int]]) -> list[str]:
-            from worker.kubernetes.watch import kubernetes_executor
+            from worker.kubernetes.client import kubernetes_executor
 
             executor = kubernetes_executor(settings)
             try:
@@ -99,7 +99,7 @@ def job_resumer(settings: WorkerSettings, send: Callable[[int, int], None]) -> R
         return None
 
     def resume(submission_id: int, attempt: int) -> bool:
-        from worker.kubernetes.watch import kubernetes_executor
+        from worker.kubernetes.client import kubernetes_executor
 
         executor = kubernetes_executor(settings)
         try:

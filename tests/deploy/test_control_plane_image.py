@@ -54,7 +54,7 @@ SCRIPT = textwrap.dedent(
     from evaluator.plan import build_plan
     from evaluator.suite import SUITES_DIR, load_suite
     from internal_api.schemas import Assignment
-    from worker.kubernetes.watch import job_spec
+    from worker.kubernetes.spec import job_spec
     from worker.kubernetes.manifest import build_job
     from worker.settings import WorkerSettings
 

@@ -39,7 +39,7 @@ from tests.deploy.manifests import (
 )
 from tests.worker.test_k8s_manifest import restricted_violations
 from worker.kubernetes.manifest import active_deadline_for, build_job
-from worker.kubernetes.watch import job_spec
+from worker.kubernetes.spec import job_spec
 from worker.settings import WorkerSettings
 
 PINNED = re.compile(r"^[a-z0-9][^\s@]*@sha256:[0-9a-f]{64}$")

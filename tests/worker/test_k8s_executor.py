@@ -24,10 +24,15 @@ from tests.worker.k8s_double import (
     running_apiserver,
 )
 from tests.workers import worker_settings
-from worker.kubernetes.client import Backoff, JobConflict, KubernetesError, StartedJob
+from worker.kubernetes.client import (
+    Backoff,
+    JobConflict,
+    KubernetesError,
+    StartedJob,
+    kubernetes_executor,
+)
 from worker.kubernetes.manifest import build_job, job_labels
 from worker.kubernetes.status import JobStatus, PodView
-from worker.kubernetes.watch import kubernetes_executor
 
 STARTED = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
 

@@ -33,7 +33,7 @@ from worker.kubernetes.manifest import (
     build_network_policy,
     build_secret,
 )
-from worker.kubernetes.watch import job_spec
+from worker.kubernetes.spec import job_spec
 
 Json = dict[str, Any]
 VERSIONS = ["1.30", latest_version()]

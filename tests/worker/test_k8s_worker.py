@@ -47,7 +47,8 @@ from tests.worker.k8s_double import (
 from tests.workers import worker_settings
 from worker.kubernetes.client import KubernetesExecutor
 from worker.kubernetes.manifest import build_job, job_name
-from worker.kubernetes.watch import job_spec, resume_watch, run_as_job
+from worker.kubernetes.spec import job_spec
+from worker.kubernetes.watch import resume_watch, run_as_job
 from worker.reconcile import job_resumer, reconcile_pass, runtime_cleaners
 from worker.run import run_next
 from worker.server_api import ServerAPI

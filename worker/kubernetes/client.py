@@ -51,6 +51,7 @@ from worker.kubernetes.status import (
     pods_by_index,
     warnings,
 )
+from worker.settings import WorkerSettings
 
 
 @dataclass(frozen=True)
@@ -373,3 +374,23 @@ def _release(response: Any) -> None:
     if callable(release):
         response.drain_conn()
         release()
+
+
+def kubernetes_executor(settings: WorkerSettings) -> KubernetesExecutor:
+    """An executor for the configured cluster: in-cluster service account, an API URL without
+    credentials (`kubectl proxy`, tests), or a kubeconfig."""
+    from kubernetes import config
+    from kubernetes.client import ApiClient, Configuration
+
+    configuration = Configuration()
+    if settings.k8s_api_url:
+        configuration.host = settings.k8s_api_url
+    elif settings.k8s_in_cluster:
+        config.load_incluster_config(client_configuration=configuration)  # type: ignore[no-untyped-call]
+    else:
+        path = str(settings.k8s_kubeconfig) if settings.k8s_kubeconfig else None
+        config.load_kube_config(  # type: ignore[no-untyped-call]
+            config_file=path, client_configuration=configuration
+        )
+    no_client_retries(configuration)
+    return KubernetesExecutor(ApiClient(configuration), settings.k8s_namespace)

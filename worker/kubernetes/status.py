@@ -9,7 +9,8 @@ pod whose log stands for each shard, and `warnings` reads the cluster's warnings
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import re
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from datetime import datetime
 from typing import Any, Literal
@@ -240,3 +241,16 @@ def _ending(terminated: Any) -> str:
     if terminated.reason == "OOMKilled":
         return "the policy container was killed for exceeding its memory limit (OOMKilled)"
     return f"the policy container exited with code {terminated.exit_code}"
+
+
+_EPISODE_LINE = re.compile(r"^manieval: run (\d+) episode \d+:", re.MULTILINE)
+
+
+def episodes_in(logs: Sequence[str]) -> tuple[int, int | None]:
+    """Episodes the evaluator logs report done, and the run index of the last one."""
+    done, last = 0, None
+    for text in logs:
+        for match in _EPISODE_LINE.finditer(text):
+            done += 1
+            last = int(match.group(1))
+    return done, last

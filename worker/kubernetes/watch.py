@@ -18,14 +18,13 @@ nothing in the pod can write one.
 from __future__ import annotations
 
 import logging
-import re
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from evaluator.job import JobOutputError, evaluation_job, result_from_logs
+from evaluator.job import JobOutputError, result_from_logs
 from evaluator.plan import EvaluationPlan
 from evaluator.sources import LOG_TAIL_BYTES
 from internal_api.schemas import Assignment, ErrorCause, FinalReport, State
@@ -33,20 +32,18 @@ from worker.kubernetes.client import (
     JobConflict,
     KubernetesError,
     KubernetesExecutor,
-    no_client_retries,
+    kubernetes_executor,
 )
 from worker.kubernetes.manifest import (
     EVALUATOR,
     POLICY,
     JobSpec,
-    Resources,
-    active_deadline_for,
     build_job,
     job_name,
-    needs_gpu,
 )
 from worker.kubernetes.quota import demand, never_fits, shortfall
-from worker.kubernetes.status import JobStatus, PodView
+from worker.kubernetes.spec import job_spec
+from worker.kubernetes.status import JobStatus, PodView, episodes_in
 from worker.outcome import conclusion, ended
 from worker.server_api import ServerAPI, ServerUnavailable
 from worker.settings import WorkerSettings
@@ -61,57 +58,6 @@ CANCEL_CHECK_S = 1.0  # between looks, a heartbeat this often: a cancel stops th
 CLUSTER = ErrorCause.CLUSTER
 _ROOM = object()  # `_until_room`'s answer when the Job may be created
 _UNKNOWN = object()  # ... when the quotas could not be read: the API server decides at creation
-_EPISODE_LINE = re.compile(r"^manieval: run (\d+) episode \d+:", re.MULTILINE)
-
-
-def kubernetes_executor(settings: WorkerSettings) -> KubernetesExecutor:
-    """An executor for the configured cluster: in-cluster service account, an API URL without
-    credentials (`kubectl proxy`, tests), or a kubeconfig."""
-    from kubernetes import config
-    from kubernetes.client import ApiClient, Configuration
-
-    configuration = Configuration()
-    if settings.k8s_api_url:
-        configuration.host = settings.k8s_api_url
-    elif settings.k8s_in_cluster:
-        config.load_incluster_config(client_configuration=configuration)  # type: ignore[no-untyped-call]
-    else:
-        path = str(settings.k8s_kubeconfig) if settings.k8s_kubeconfig else None
-        config.load_kube_config(  # type: ignore[no-untyped-call]
-            config_file=path, client_configuration=configuration
-        )
-    no_client_retries(configuration)
-    return KubernetesExecutor(ApiClient(configuration), settings.k8s_namespace)
-
-
-def job_spec(settings: WorkerSettings, handed: Assignment) -> JobSpec:
-    """The Job of this attempt, from its evaluation and the worker's settings (ValueError if
-    bad)."""
-    if not settings.evaluator_image:
-        raise ValueError("no evaluator image is configured (MANIEVAL_EVALUATOR_IMAGE)")
-    plan = handed.plan
-    return JobSpec(
-        submission_id=handed.submission_id,
-        attempt=handed.attempt,
-        namespace=settings.k8s_namespace,
-        evaluator_image=settings.evaluator_image,
-        policy_image=handed.image,
-        evaluation=evaluation_job(plan, suite_yaml=handed.suite_yaml),
-        evaluator_resources=Resources(settings.evaluator_cpu, settings.evaluator_memory, "2Gi"),
-        policy_resources=Resources(
-            cpu=f"{round(settings.policy_cpus * 1000)}m",
-            memory=f"{settings.policy_memory_mib}Mi",
-            ephemeral_storage="1Gi",
-        ),
-        gpu=needs_gpu(plan),
-        active_deadline_seconds=active_deadline_for(plan.limits),
-        runtime_class_name=settings.k8s_runtime_class,
-        shards=handed.shards,
-        node_selector=tuple(sorted(settings.k8s_node_selector.items())),
-        tolerations=tuple(tuple(t.items()) for t in settings.k8s_tolerations),
-        priority_class_name=settings.k8s_priority_class,
-        image_pull_secrets=settings.k8s_image_pull_secrets,
-    )
 
 
 def run_as_job(
@@ -459,13 +405,3 @@ class _Watch:
             self.executor.cancel(*self.ids)
         except KubernetesError as exc:  # the reconciler deletes it on its next pass
             log.warning("could not delete Job %s: %s", job_name(*self.ids), exc)
-
-
-def episodes_in(logs: Sequence[str]) -> tuple[int, int | None]:
-    """Episodes the evaluator logs report done, and the run index of the last one."""
-    done, last = 0, None
-    for text in logs:
-        for match in _EPISODE_LINE.finditer(text):
-            done += 1
-            last = int(match.group(1))
-    return done, last

@@ -1,0 +1,38 @@
+"""The Job of a claimed attempt, from its evaluation and the worker's settings (pure)."""
+
+from __future__ import annotations
+
+from evaluator.job import evaluation_job
+from internal_api.schemas import Assignment
+from worker.kubernetes.manifest import JobSpec, Resources, active_deadline_for, needs_gpu
+from worker.settings import WorkerSettings
+
+
+def job_spec(settings: WorkerSettings, handed: Assignment) -> JobSpec:
+    """The Job of this attempt, from its evaluation and the worker's settings (ValueError if
+    bad)."""
+    if not settings.evaluator_image:
+        raise ValueError("no evaluator image is configured (MANIEVAL_EVALUATOR_IMAGE)")
+    plan = handed.plan
+    return JobSpec(
+        submission_id=handed.submission_id,
+        attempt=handed.attempt,
+        namespace=settings.k8s_namespace,
+        evaluator_image=settings.evaluator_image,
+        policy_image=handed.image,
+        evaluation=evaluation_job(plan, suite_yaml=handed.suite_yaml),
+        evaluator_resources=Resources(settings.evaluator_cpu, settings.evaluator_memory, "2Gi"),
+        policy_resources=Resources(
+            cpu=f"{round(settings.policy_cpus * 1000)}m",
+            memory=f"{settings.policy_memory_mib}Mi",
+            ephemeral_storage="1Gi",
+        ),
+        gpu=needs_gpu(plan),
+        active_deadline_seconds=active_deadline_for(plan.limits),
+        runtime_class_name=settings.k8s_runtime_class,
+        shards=handed.shards,
+        node_selector=tuple(sorted(settings.k8s_node_selector.items())),
+        tolerations=tuple(tuple(t.items()) for t in settings.k8s_tolerations),
+        priority_class_name=settings.k8s_priority_class,
+        image_pull_secrets=settings.k8s_image_pull_secrets,
+    )
