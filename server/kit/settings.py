@@ -181,8 +181,9 @@ class Settings(BaseSettings):
     it. Unset: the address of the request, which only a local install can trust (a Host header
     is the client's to choose); required with ``mail_backend=smtp`` outside dev mode."""
     require_verified_email: bool | None = None
-    """Whether a participant must verify their email address before submitting; unset: yes,
-    except in dev mode."""
+    """Whether a participant must verify their email address before submitting; unset: yes
+    when mail reaches people (``mail_backend=smtp``) outside dev mode, else no (mails in a
+    folder only the operator reads could verify nobody)."""
     verify_link_hours: int = Field(default=48, ge=1, le=24 * 30)
     reset_link_minutes: int = Field(default=60, ge=5, le=24 * 60)
     mail_rate: Annotated[str, BeforeValidator(Rate.checked)] = "5/hour"
@@ -232,7 +233,7 @@ class Settings(BaseSettings):
     def email_verification_required(self) -> bool:
         """Whether submitting needs a verified address (`require_verified_email`, resolved)."""
         if self.require_verified_email is None:
-            return not self.dev_mode
+            return self.mail_backend == "smtp" and not self.dev_mode
         return self.require_verified_email
 
     @model_validator(mode="after")

@@ -642,9 +642,13 @@ def test_mail_settings_fail_fast(changes: dict[str, str], problem: str) -> None:
         Settings(**secrets, **changes)  # type: ignore[arg-type]
 
 
-def test_verification_is_required_outside_dev_mode_unless_turned_off() -> None:
+def test_verification_is_required_where_mail_reaches_people_unless_turned_off() -> None:
     secrets = dict.fromkeys(("secret_key", "seed_secret", "worker_token"), "k" * 32)
-    assert Settings(**secrets).email_verification_required  # type: ignore[arg-type]
+    smtp = {"mail_backend": "smtp", "smtp_host": "mail.example.org"}
+    public = {"public_url": "https://manieval.example.org"}
+    assert Settings(**secrets, **smtp, **public).email_verification_required  # type: ignore[arg-type]
+    # Mails only in the data directory's folder: nobody could verify, so nobody must.
+    assert not Settings(**secrets).email_verification_required  # type: ignore[arg-type]
     assert not Settings(dev_mode=True).email_verification_required
     off = Settings(**secrets, require_verified_email=False)  # type: ignore[arg-type]
     assert not off.email_verification_required
