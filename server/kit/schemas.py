@@ -39,12 +39,6 @@ def text_problem(value: str, *, multiline: bool = False) -> str | None:
     return f"contains a character that is not allowed here (U+{ord(found.group()):04X})"
 
 
-def storable(value: str) -> str:
-    """`value` with every character `Text` refuses replaced by U+FFFD: for text that is data, not
-    input to refuse (a policy's log, a worker's reason)."""
-    return _TEXT_BAD.sub("\ufffd", value)
-
-
 def _line(value: str) -> str:
     if (problem := text_problem(value)) is not None:
         raise ValueError(problem)

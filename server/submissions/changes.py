@@ -81,6 +81,11 @@ class ChangeFeed:
         with self._lock:
             return sum(len(w) for w in self._watchers.values())
 
+    @property
+    def listening(self) -> bool:
+        """Whether this feed follows Postgres notifications (`listen`)."""
+        return self._listener is not None
+
     def listen(self, database_url: str) -> None:
         """On Postgres, follow other processes' changes through LISTEN (a thread and one
         connection, reconnecting after failures); elsewhere nothing is needed."""
@@ -153,9 +158,13 @@ def _notify(session: Session) -> None:
 @event.listens_for(Session, "after_commit")
 def _published(session: Session) -> None:
     ids: set[int] | None = session.info.pop(_PENDING, None)
-    if ids:
-        for feed in list(_FEEDS):
-            feed.publish(ids)
+    if not ids:
+        return
+    notified = session.get_bind().dialect.name == "postgresql"
+    for feed in list(_FEEDS):
+        if notified and feed.listening:
+            continue  # the NOTIFY sent with the commit reaches it: one wake, not two
+        feed.publish(ids)
 
 
 @event.listens_for(Session, "after_soft_rollback")

@@ -29,7 +29,6 @@ from sqlalchemy.orm import Session
 
 from server.accounts import service as accounts
 from server.kit.db import ROOT
-from server.kit.schemas import storable
 from server.kit.settings import Settings
 from tests.factories import PASSWORD, make_challenge, make_user, queue_submission, token_for
 from tests.web.helpers import browser, csrf_of
@@ -536,8 +535,3 @@ def test_the_minimum_score_is_a_setting(client: TestClient, settings: Settings) 
 def test_a_bad_throttling_rate_is_refused_at_startup(tmp_path: Path, field: str) -> None:
     with pytest.raises(ValueError, match="invalid rate"):
         Settings(dev_mode=True, data_dir=tmp_path, **{field: "lots"})
-
-
-def test_storable_keeps_text_and_replaces_what_cannot_be_stored() -> None:
-    assert storable("line one\r\n\tline two") == "line one\r\n\tline two"
-    assert storable("a\x00b\x1bc\ud800d\uffff") == "a\ufffdb\ufffdc\ufffdd\ufffd"
