@@ -128,6 +128,27 @@ def is_loopback(server: str) -> bool:
     return host in ("localhost", "::1") or host.startswith("127.")
 
 
+@dataclass(frozen=True)
+class MethodInfo:
+    """What a submission may say of its method (`--method`, `--paper-url`, `--code-url`)."""
+
+    method: str | None = None
+    paper_url: str | None = None
+    code_url: str | None = None
+
+    def fields(self) -> dict[str, str]:
+        """The body fields given (the server checks the links)."""
+        given = {"method": self.method, "paper_url": self.paper_url, "code_url": self.code_url}
+        return {k: v for k, v in given.items() if v is not None}
+
+    def link_problem(self) -> tuple[str, str] | None:
+        """(option, why) for a link the server will refuse, or None; the server checks all."""
+        for option, url in (("--paper-url", self.paper_url), ("--code-url", self.code_url)):
+            if url and (urlsplit(url).scheme not in ("http", "https") or not urlsplit(url).netloc):
+                return option, f"{url!r} is not an absolute http:// or https:// URL"
+        return None
+
+
 class Client:
     """One server, with or without an API token. Use it as a context manager."""
 
@@ -253,15 +274,23 @@ class Client:
     # Submissions ------------------------------------------------------------------------------
 
     def submit(
-        self, *, challenge: str, phase: str, image: str, description: str, public: bool
+        self,
+        *,
+        challenge: str,
+        phase: str,
+        image: str,
+        description: str,
+        public: bool,
+        method: MethodInfo | None = None,
     ) -> JSON:
-        body = {
+        body: dict[str, object] = {
             "challenge": challenge,
             "phase": phase,
             "image": image,
             "description": description,
             "public": public,
         }
+        body.update((method or MethodInfo()).fields())
         result: JSON = self.call("POST", "/submissions", json=body, read_s=SUBMIT_READ_S)
         return result
 

@@ -11,12 +11,21 @@ import typer
 from rich.text import Text
 
 from manieval import render
-from manieval.client import Client
+from manieval.client import Client, MethodInfo
 from manieval.connect import JsonOption, ServerOption, connect, print_json
 from manieval.errors import STATE_CODES, ExitCode, handled, server_flag
 from manieval.follow import FINAL_STATES, follow
 
 SubmissionId = Annotated[int, typer.Argument(min=1, help="The submission's number.")]
+MethodOption = Annotated[
+    str | None, typer.Option("--method", help="Your method's name, shown on the leaderboard.")
+]
+PaperOption = Annotated[
+    str | None, typer.Option("--paper-url", help="A link to the method's paper (http or https).")
+]
+CodeOption = Annotated[
+    str | None, typer.Option("--code-url", help="A link to the method's code (http or https).")
+]
 
 
 # Challenges -----------------------------------------------------------------------------------
@@ -70,6 +79,9 @@ def submit(
     challenge: Annotated[str, typer.Option("--challenge", "-c", help="The challenge's name.")],
     phase: Annotated[str, typer.Option(help="The phase.")] = "dev",
     description: Annotated[str, typer.Option(help="A note shown with the submission.")] = "",
+    method: MethodOption = None,
+    paper_url: PaperOption = None,
+    code_url: CodeOption = None,
     private: Annotated[
         bool, typer.Option("--private", help="Keep it off the public leaderboard.")
     ] = False,
@@ -87,6 +99,7 @@ def submit(
             image=image,
             description=description,
             public=not private,
+            method=MethodInfo(method, paper_url, code_url),
         )
         err = render.stderr()
         err.print(f"submission {s['id']} accepted: {s['pinned_image']}")

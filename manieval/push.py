@@ -21,6 +21,7 @@ import typer
 from rich.text import Text
 
 from manieval import render
+from manieval.client import MethodInfo
 from manieval.connect import JsonOption, ServerOption, connect, print_json
 from manieval.engine_login import (
     ENGINES,
@@ -33,7 +34,7 @@ from manieval.engine_login import (
     tls_flags,
 )
 from manieval.errors import ExitCode, fail, handled, server_flag
-from manieval.participant import wait_and_report
+from manieval.participant import CodeOption, MethodOption, PaperOption, wait_and_report
 
 PUSH_TIMEOUT_S = 3600.0
 _COMPONENT = re.compile(r"[a-z0-9]+(?:(?:[._]|__|-+)[a-z0-9]+)*")
@@ -202,6 +203,9 @@ def push(
         str | None, typer.Option(help="Tag in the registry (default: the image's, or latest).")
     ] = None,
     description: Annotated[str, typer.Option(help="A note shown with the submission.")] = "",
+    method: MethodOption = None,
+    paper_url: PaperOption = None,
+    code_url: CodeOption = None,
     private: Annotated[
         bool, typer.Option("--private", help="Keep it off the public leaderboard.")
     ] = False,
@@ -226,6 +230,9 @@ def push(
     """Push a local image to the service's registry under your name; submit it by digest."""
     if engine is not None and engine not in ENGINES:
         raise typer.BadParameter("podman or docker", param_hint="--engine")
+    info = MethodInfo(method, paper_url, code_url)
+    if (problem := info.link_problem()) is not None:  # before the upload, not after it
+        raise typer.BadParameter(problem[1], param_hint=problem[0])
     chosen = require_engine(engine)
     err = render.stderr()
     with handled(), connect(server, login="required") as client:
@@ -257,6 +264,7 @@ def push(
             image=target.pinned(digest),
             description=description,
             public=not private,
+            method=info,
         )
         err.print(f"submission {s['id']} accepted: {s['pinned_image']}", highlight=False)
         if not wait:

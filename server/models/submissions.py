@@ -71,6 +71,12 @@ class Submission(Base):
     """What runs: ``domain/path@sha256:...`` resolved at submit time, or ``local:NAME``."""
     image_bytes: Mapped[int | None] = mapped_column(BigInteger)
     description: Mapped[str] = mapped_column(String(2000), default="")
+    method: Mapped[str | None] = mapped_column(String(100))
+    """The method's name, as the leaderboard shows it (optional)."""
+    paper_url: Mapped[str | None] = mapped_column(String(500))
+    """An http(s) link to the method's paper (optional)."""
+    code_url: Mapped[str | None] = mapped_column(String(500))
+    """An http(s) link to the method's code (optional)."""
     public: Mapped[bool] = mapped_column(Boolean, default=True)
     hidden: Mapped[bool] = mapped_column(Boolean, default=False)
     baseline: Mapped[bool] = mapped_column(Boolean, default=False)

@@ -22,6 +22,7 @@ from server.kit.deps import (
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Submission
+from server.submissions.method import Method
 from server.submissions.queue import queue_out
 from server.submissions.schemas import (
     EpisodeOut,
@@ -59,6 +60,9 @@ def _submission_out(s: Submission) -> SubmissionOut:
         image=s.image,
         pinned_image=s.pinned_image,
         description=s.description,
+        method=s.method,
+        paper_url=s.paper_url,
+        code_url=s.code_url,
         public=s.public,
         hidden=s.hidden,
         baseline=s.baseline,
@@ -87,6 +91,7 @@ def create_submission(body: SubmitIn, request: Request, user: UserDep, db: DBDep
         image=body.image,
         description=body.description,
         public=body.public,
+        method=Method(name=body.method, paper_url=body.paper_url, code_url=body.code_url),
         resolve=svc.resolve,
         require_verified_email=svc.settings.email_verification_required,
     )
@@ -214,7 +219,7 @@ def rerun_submission(
 def update_submission(
     submission_id: Id, body: SubmissionPatch, user: UserDep, db: DBDep
 ) -> SubmissionOut:
-    """Owners change visibility and description; admins also hide and flag baselines."""
+    """Owners change visibility, description and method; admins also hide and flag baselines."""
     s = get_owned(db, submission_id=submission_id, user=user)
     edit(
         db,
@@ -224,6 +229,7 @@ def update_submission(
         hidden=body.hidden,
         baseline=body.baseline,
         description=body.description,
+        method=Method(name=body.method, paper_url=body.paper_url, code_url=body.code_url),
     )
     db.commit()
     return _submission_out(s)

@@ -9,6 +9,11 @@ from pydantic import BaseModel, Field
 
 from server.kit.schemas import InBody
 from server.models import State
+from server.submissions.method import METHOD_MAX, URL_MAX, URL_PATTERN
+
+_METHOD = "the method's name, shown on the leaderboard"
+_PAPER = "an absolute http(s) link to the method's paper"
+_CODE = "an absolute http(s) link to the method's code"
 
 
 class SubmitIn(InBody):
@@ -17,6 +22,13 @@ class SubmitIn(InBody):
     image: str = Field(max_length=512)
     description: str = Field(default="", max_length=2000)
     public: bool = True
+    method: str | None = Field(default=None, max_length=METHOD_MAX, description=_METHOD)
+    paper_url: str | None = Field(
+        default=None, max_length=URL_MAX, pattern=URL_PATTERN, description=_PAPER
+    )
+    code_url: str | None = Field(
+        default=None, max_length=URL_MAX, pattern=URL_PATTERN, description=_CODE
+    )
 
 
 class SubmissionPatch(InBody):
@@ -24,6 +36,18 @@ class SubmissionPatch(InBody):
     hidden: bool | None = Field(default=None, description="admins only")
     baseline: bool | None = Field(default=None, description="admins only")
     description: str | None = Field(default=None, max_length=2000)
+    method: str | None = Field(
+        default=None, max_length=METHOD_MAX, description=_METHOD + '; "" removes it'
+    )
+    paper_url: str | None = Field(
+        default=None,
+        max_length=URL_MAX,
+        pattern=URL_PATTERN,
+        description=_PAPER + '; "" removes it',
+    )
+    code_url: str | None = Field(
+        default=None, max_length=URL_MAX, pattern=URL_PATTERN, description=_CODE + '; "" removes it'
+    )
 
 
 class TransitionOut(BaseModel):
@@ -65,6 +89,9 @@ class SubmissionOut(BaseModel):
     image: str
     pinned_image: str
     description: str
+    method: str | None
+    paper_url: str | None
+    code_url: str | None
     public: bool
     hidden: bool
     baseline: bool

@@ -34,6 +34,7 @@ from server.models import (
     utcnow,
 )
 from server.submissions.changes import changed
+from server.submissions.method import Method
 from server.submissions.states import new_attempt, transition
 
 # A submission reserves quota from the moment it is accepted; if it ends in `error` (our
@@ -103,6 +104,7 @@ def submit(
     description: str,
     public: bool,
     resolve: Resolver,
+    method: Method | None = None,
     require_verified_email: bool = False,
     now: datetime | None = None,
 ) -> Submission:
@@ -116,6 +118,7 @@ def submit(
         )
     if len(description) > 2000:
         raise Invalid("description too long", fields={"description": "at most 2000 characters"})
+    named = (method or Method()).checked().stored()
     if not phase.is_open(now):
         when = phase.opens_at if phase.opens_at and now < phase.opens_at else phase.closes_at
         verb = "opens" if phase.opens_at and now < phase.opens_at else "closed"
@@ -138,6 +141,7 @@ def submit(
         pinned_image=resolved.pinned,
         image_bytes=resolved.size_bytes,
         description=description,
+        **named,
         public=public,
         state=State.QUEUED,
         reason="waiting for a worker",
@@ -280,9 +284,10 @@ def edit(
     hidden: bool | None = None,
     baseline: bool | None = None,
     description: str | None = None,
+    method: Method | None = None,
 ) -> None:
-    """The owner changes visibility and description; admins also hide and flag baselines.
-    The phase's leaderboard is recomputed for the submission's owner."""
+    """The owner changes visibility, description and method; admins also hide and flag
+    baselines. The phase's leaderboard is recomputed for the submission's owner."""
     if not owned_or_admin(submission, user):
         raise NotFound(f"no submission {submission.id}")
     if (hidden is not None or baseline is not None) and not user.is_admin:
@@ -296,6 +301,8 @@ def edit(
     for name, value in changes.items():
         if value is not None:
             setattr(submission, name, value)
+    for name, named in (method or Method()).checked().stored().items():
+        setattr(submission, name, named)  # None here clears it
     db.flush()
     changed(db, submission.id)  # open views check again who may see it
     refresh(db, phase_id=submission.phase_id, user_id=submission.user_id)

@@ -16,6 +16,7 @@ from server.kit.errors import AppError, Forbidden, Invalid
 from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
 from server.models import Challenge, State, User, utcnow
 from server.registry.tokens import namespace_for
+from server.submissions.method import Method
 from server.submissions.service import images_refused, list_submissions, quota_use, submit
 
 router = APIRouter(include_in_schema=False)
@@ -121,6 +122,7 @@ def submit_form(
     signed_in(request, who)
     challenge = get_challenge(db, slug=slug)
     default = {"phase": phase, "image": "", "description": "", "visibility": "public"}
+    default |= {"method": "", "paper_url": "", "code_url": ""}
     return _form(request, who, db, challenge, form=default)
 
 
@@ -136,6 +138,9 @@ def submit_post(
     phase: FormText = "",
     image: FormText = "",
     description: FormText = "",
+    method: FormText = "",
+    paper_url: FormText = "",
+    code_url: FormText = "",
     visibility: FormText = "public",
 ) -> Response:
     """Accept the submission and go to its page, or show the server's errors by the fields."""
@@ -143,6 +148,7 @@ def submit_post(
     challenge = get_challenge(db, slug=slug)
     image = image.strip()
     form = {"phase": phase, "image": image, "description": description, "visibility": visibility}
+    form |= {"method": method, "paper_url": paper_url, "code_url": code_url}
     svc = services(request)
     try:
         limit(request, "submit", user=user)
@@ -161,6 +167,7 @@ def submit_post(
             image=image,
             description=description,
             public=visibility != "private",
+            method=Method(name=method, paper_url=paper_url, code_url=code_url),
             resolve=svc.resolve,
             require_verified_email=svc.settings.email_verification_required,
         )

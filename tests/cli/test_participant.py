@@ -112,11 +112,17 @@ def test_a_participant_registers_submits_follows_compares_and_logs_out(
     assert "alice" in r.stdout
 
     r = alice.run(
-        "submit", "local:random", "-c", "server-long", "--phase", "test", "--private", "--json"
-    )
+        "submit", "local:random", "-c", "server-long", "--phase", "test", "--private", "--json",
+        "--method", "Random baseline", "--code-url", "https://example.org/random",
+    )  # fmt: skip
     assert r.exit_code == 0, r.output
     queued = json.loads(r.stdout)
     assert (queued["state"], queued["public"], queued["phase"]) == ("queued", False, "test")
+    assert (queued["method"], queued["paper_url"]) == ("Random baseline", None)
+    assert queued["code_url"] == "https://example.org/random"
+    r = alice.run("submit", "local:random", "-c", "server-long", "--paper-url", "arxiv.org/x")
+    assert r.exit_code == ExitCode.INVALID, r.output
+    assert "paper_url" in r.output
     long_id = queued["id"]
     r = alice.run("cancel", str(long_id))
     assert r.exit_code == 0, r.output
