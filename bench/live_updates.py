@@ -7,9 +7,10 @@ each carrying the time it was committed, and records when each stream receives i
 twice, side by side on the same server: with changes pushed (`server/submissions/changes.py`,
 the default) and with the former behaviour, every stream reading the database once a second
 (`fallback_s=1`, signals ignored). It also counts the database reads the streams make while
-nothing changes. Figures: the delay from a commit to its arrival (median, 95th percentile,
-max) and reads per stream per minute when idle, for both; the last line is the ratio of the
-median delays (polled / pushed).
+nothing changes, and the CPU the server takes meanwhile (every thread of this process but the
+clients' own). Figures: the delay from a commit to its arrival (median, 95th percentile,
+max), reads per stream per minute and server CPU when idle, for both; the last line is the
+ratio of the median delays (polled / pushed).
 
     .venv/bin/python bench/live_updates.py [--streams 1000] [--submissions 100] [--changes 100]
 """
@@ -166,7 +167,10 @@ async def run_mode(
         await asyncio.sleep(2.0)  # every stream past its first read
         with counts.lock:
             counts.reads = 0
+        # The server's CPU: the whole process's less this thread's (the clients' event loop).
+        cpu_before = time.process_time() - time.thread_time()
         await asyncio.sleep(idle_s)
+        server_cpu_s = time.process_time() - time.thread_time() - cpu_before
         with counts.lock:
             idle_reads = counts.reads
         window.since = time.time()
@@ -188,6 +192,7 @@ async def run_mode(
         "p95_s": ordered[int(0.95 * (len(ordered) - 1))],
         "max_s": ordered[-1],
         "idle_reads_per_stream_per_min": idle_reads / streams / idle_s * 60,
+        "idle_server_cpu": server_cpu_s / idle_s,
     }
 
 
@@ -236,7 +241,8 @@ def main() -> None:
             print(
                 f"  delay median {r['median_s'] * 1000:.0f} ms, p95 {r['p95_s'] * 1000:.0f} ms, "
                 f"max {r['max_s'] * 1000:.0f} ms; {r['arrived']:.0%} of the expected events; "
-                f"idle: {r['idle_reads_per_stream_per_min']:.1f} reads per stream per minute"
+                f"idle: {r['idle_reads_per_stream_per_min']:.1f} reads per stream per minute, "
+                f"server CPU {r['idle_server_cpu']:.1%} of a core"
             )
     ratio = results["polled"]["median_s"] / results["pushed"]["median_s"]
     print(f"live_update_delay_polled_over_pushed {ratio:.2f}")
