@@ -16,7 +16,7 @@ from typing import Any
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from manieval import account, participant, push
+from manieval import account, participant, push, teams
 from manieval.evaluate import evaluate
 
 PARTICIPATE = "Take part (against a server)"
@@ -114,5 +114,6 @@ for command in (
     participant.leaderboard,
 ):
     app.command(rich_help_panel=PARTICIPATE)(command)
+app.add_typer(teams.app, name="team", rich_help_panel=PARTICIPATE)
 
 app.command("evaluate", rich_help_panel=OPERATE)(evaluate)

@@ -314,6 +314,48 @@ class Client:
         result: JSON = self.call("POST", f"/submissions/{submission_id}/cancel")
         return result
 
+    # Teams ------------------------------------------------------------------------------------
+
+    def my_team(self) -> JSON:
+        """My team (None when I am in none) and the invitations waiting for my answer."""
+        result: JSON = self.call("GET", "/team")
+        return result
+
+    def team(self, name: str) -> JSON:
+        result: JSON = self.call("GET", f"/teams/{_segment(name)}")
+        return result
+
+    def create_team(self, *, name: str, display_name: str) -> JSON:
+        body = {"name": name, "display_name": display_name}
+        result: JSON = self.call("POST", "/teams", json=body)
+        return result
+
+    def invite(self, *, team: str, username: str) -> JSON:
+        body = {"username": username}
+        result: JSON = self.call("POST", f"/teams/{_segment(team)}/invitations", json=body)
+        return result
+
+    def revoke_invitation(self, *, team: str, invitation_id: int) -> JSON:
+        result: JSON = self.call("DELETE", f"/teams/{_segment(team)}/invitations/{invitation_id}")
+        return result
+
+    def accept_invitation(self, invitation_id: int) -> JSON:
+        result: JSON = self.call("POST", f"/team/invitations/{invitation_id}/accept")
+        return result
+
+    def decline_invitation(self, invitation_id: int) -> JSON:
+        result: JSON = self.call("POST", f"/team/invitations/{invitation_id}/decline")
+        return result
+
+    def leave_team(self) -> JSON:
+        result: JSON = self.call("POST", "/team/leave")
+        return result
+
+    def remove_member(self, *, team: str, username: str) -> JSON:
+        path = f"/teams/{_segment(team)}/members/{_segment(username)}"
+        result: JSON = self.call("DELETE", path)
+        return result
+
 
 def speaks_api(server: str) -> bool:
     """Whether `server` answers the API's public challenge list (False: a wrong URL or path)."""

@@ -227,8 +227,12 @@ def leaderboard_table(board: JSON) -> Table:
     if board["total"] > shown:
         title += f": rows {first}-{first + shown - 1} of {board['total']}"
     table = Table(title=title)
-    for column in ("rank", "user", "submission", "score", *tasks, *conditions):
-        table.add_column(column, justify="left" if column == "user" else "right")
+    # A Method column only when a row names one (servers before methods: never).
+    methods = any(r.get("method") for r in board["items"])
+    for column in ("rank", "user", *(["method"] if methods else []), "submission", "score"):
+        table.add_column(column, justify="left" if column in ("user", "method") else "right")
+    for column in (*tasks, *conditions):
+        table.add_column(column, justify="right")
     for row in board["items"]:
         rank = "baseline" if row["rank"] is None else str(row["rank"])
         if row.get("tied"):
@@ -239,15 +243,26 @@ def leaderboard_table(board: JSON) -> Table:
         condition_cells = [
             f"{row['conditions'][c]:.3f}" if c in row["conditions"] else "-" for c in conditions
         ]
+        method_cells = [Text(row.get("method") or "-")] if methods else []
         table.add_row(
             rank,
-            Text(row["username"]),
+            _participant(row),
+            *method_cells,
             str(row["submission_id"]),
             f"{row['score']:.3f}",
             *task_cells,
             *condition_cells,
         )
     return table
+
+
+def _participant(row: JSON) -> Text:
+    """The row's user, or its team and the member who submitted (team mode)."""
+    if row.get("team"):
+        return Text(row.get("team_display_name") or row["team"]) + Text(
+            f" (by {row['username']})", style="dim"
+        )
+    return Text(row["username"])
 
 
 def printable(text: str, *, terminal: bool) -> str:

@@ -38,6 +38,8 @@ from server.submissions.changes import ChangeFeed
 from server.submissions.images import image_resolver
 from server.submissions.outbox import CeleryQueue, Dispatcher, Unattached, WorkQueue
 from server.submissions.service import Resolver
+from server.teams import api as teams_api
+from server.teams import pages as teams_pages
 
 log = logging.getLogger(__name__)
 SWEEP_INTERVAL_S = 5.0
@@ -101,10 +103,17 @@ def create_app(
     app.state.event_timing = events.StreamTiming()
     app.state.event_slots = events.StreamSlots()
     app.state.change_feed = feed
-    for api in (accounts_api, challenges_api, leaderboard_api, submissions_api, internal):
+    for api in (
+        accounts_api,
+        challenges_api,
+        leaderboard_api,
+        submissions_api,
+        internal,
+    ):
         app.include_router(api.router)
     app.include_router(registry_api.router)
     app.include_router(registry_api.public)
+    app.include_router(teams_api.router)
     pages.install(
         app,
         [
@@ -114,6 +123,7 @@ def create_app(
             submit_pages.router,
             submissions_pages.router,
             events.router,
+            teams_pages.router,
         ],
     )
     install_error_handlers(app)

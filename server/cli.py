@@ -1,6 +1,6 @@
 """Operator commands of the server: `manieval db upgrade`, `manieval admin create`,
-`manieval challenge load` (`manieval serve` and `demo` compose it with the worker:
-`manieval/serve.py`)."""
+`manieval challenge load` and `manieval challenge teams` (`manieval serve` and `demo` compose
+it with the worker: `manieval/serve.py`)."""
 
 from __future__ import annotations
 
@@ -127,6 +127,15 @@ def challenge_load(
     episodes: Annotated[
         int | None, typer.Option(min=1, help="Override every task's episodes (a try-out).")
     ] = None,
+    teams: Annotated[
+        bool | None,
+        typer.Option(
+            "--teams/--no-teams",
+            help="Count quotas and leaderboard rows per team (default: as it is; off for a "
+            "new challenge).",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Create a challenge from a suite, or update the challenge of that name."""
     from server.challenges.service import ChallengeOptions, load_challenge
@@ -139,6 +148,7 @@ def challenge_load(
         opens=_dates(opens, "--opens"),
         closes=_dates(closes, "--closes"),
         episodes=episodes,
+        teams=teams,
     )
     sessions = migrated_sessions(s)
     try:
@@ -154,6 +164,28 @@ def challenge_load(
     except (SuiteError, AppError) as exc:
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(1) from None
-    console.print(f"challenge {slug} loaded")
+    console.print(f"challenge {slug} loaded{' (teams)' if teams else ''}")
     for name, commitment in phases:
         console.print(f"  phase {name}: seed commitment {commitment}")
+
+
+@challenge_app.command("teams")
+def challenge_teams(
+    slug: Annotated[str, typer.Argument(help="The challenge.")],
+    mode: Annotated[str, typer.Argument(help="on: per team; off: per user.")],
+) -> None:
+    """Count a challenge's quotas and leaderboard rows per team (on) or per user (off)."""
+    from server.challenges.service import set_team_mode
+
+    if mode not in ("on", "off"):
+        console.print("[red]error:[/] say on or off")
+        raise typer.Exit(2)
+    sessions = migrated_sessions(settings())
+    try:
+        with sessions.begin() as db:
+            set_team_mode(db, slug=slug, on=mode == "on")
+    except AppError as exc:
+        console.print(f"[red]error:[/] {exc.message}")
+        raise typer.Exit(1) from None
+    counted = "per team" if mode == "on" else "per user"
+    console.print(f"challenge {slug}: quotas and leaderboard rows count {counted}")

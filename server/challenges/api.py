@@ -21,7 +21,7 @@ from server.kit.deps import CallerDep, DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Challenge, utcnow
-from server.submissions.service import quota_use
+from server.submissions.quota import quota_use
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES, tags=["challenges"])
 
@@ -84,5 +84,6 @@ def challenge_detail(
         conditions=[ConditionOut(name=c.name, kind=c.params.kind) for c in suite.conditions],
         quota_per_day=challenge.quota_per_day,
         quota_concurrent=challenge.quota_concurrent,
+        team_mode=challenge.team_mode,
         my_quota=quota,
     )

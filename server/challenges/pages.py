@@ -20,7 +20,7 @@ from server.kit.pages import ViewerDep, render
 from server.leaderboard.columns import board_columns
 from server.leaderboard.service import baseline_points, record_points
 from server.models import Phase, utcnow
-from server.submissions.service import quota_use
+from server.submissions.quota import quota_use
 
 router = APIRouter(include_in_schema=False)
 

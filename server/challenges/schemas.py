@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 
 class PhaseOut(BaseModel):
@@ -36,6 +36,9 @@ class QuotaOut(BaseModel):
     concurrent_used: int
     concurrent_limit: int
     resets_at: datetime | None
+    team: str | None = Field(
+        default=None, description="The team whose members share this quota (team mode)."
+    )
 
 
 class ChallengeSummary(BaseModel):
@@ -51,4 +54,8 @@ class ChallengeOut(ChallengeSummary):
     conditions: list[ConditionOut]
     quota_per_day: int
     quota_concurrent: int
+    team_mode: bool = Field(
+        default=False,
+        description="Quotas and leaderboard rows count per team instead of per user.",
+    )
     my_quota: QuotaOut | None

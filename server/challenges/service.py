@@ -15,6 +15,7 @@ from sqlalchemy.orm import selectinload
 
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
 from server.kit.errors import Invalid, NotFound
+from server.leaderboard.entries import rebuild
 from server.models import Challenge, Phase, utcnow
 
 
@@ -28,6 +29,8 @@ class ChallengeOptions:
     closes: dict[str, datetime] = field(default_factory=dict)
     episodes: int | None = None
     """Override every task's episode count (a quick try-out; the stored suite says so)."""
+    teams: bool | None = None
+    """Count quotas and leaderboard rows per team (None: as it is; off for a new challenge)."""
 
 
 def load_challenge(
@@ -64,6 +67,8 @@ def load_challenge(
     challenge.suite_hash = suite.sha256()
     challenge.quota_per_day = options.quota_per_day
     challenge.quota_concurrent = options.quota_concurrent
+    regroup = options.teams is not None and challenge.team_mode != options.teams
+    challenge.team_mode = bool(options.teams if options.teams is not None else challenge.team_mode)
 
     existing = {phase.name: phase for phase in challenge.phases}
     for name, spec in suite.phases.items():
@@ -80,6 +85,19 @@ def load_challenge(
     for gone in existing.values():  # phases dropped from the suite
         challenge.phases.remove(gone)
     db.flush()
+    if regroup:
+        rebuild(db, challenge_id=challenge.id)
+    return challenge
+
+
+def set_team_mode(db: DB, *, slug: str, on: bool) -> Challenge:
+    """Count the challenge's quotas and leaderboard rows per team (on) or per user (off);
+    its boards are recomputed at once (docs/server.md, Teams)."""
+    challenge = get_challenge(db, slug=slug)
+    if challenge.team_mode != on:
+        challenge.team_mode = on
+        db.flush()
+        rebuild(db, challenge_id=challenge.id)
     return challenge
 
 

@@ -33,7 +33,8 @@ async def leaderboard(
     per_page: PerPage = 50,
     format: Literal["json", "csv"] = "json",
 ) -> Response:
-    """Best public submission per user, by score (equal scores: the earlier submission first).
+    """Best public submission per user (per team, in a challenge with team mode on), by score
+    (equal scores: the earlier submission first).
 
     Each row carries its score's 95% interval and `tied`: whether that interval overlaps the
     one of the ranked row above (docs/metrics.md, "How ties are decided"). `tasks` and
@@ -94,7 +95,8 @@ def _leaderboard_csv(board: LeaderboardOut) -> str:
     buf = io.StringIO()
     writer = csv.writer(buf)
     header = ["rank", "username", "baseline", "score", "score_ci_low", "score_ci_high", "tied"]
-    header += ["submitted_at", "submission_id"]
+    header += ["submitted_at", "submission_id", "team", "team_display_name", "method"]
+    header += ["paper_url", "code_url"]
     header += [f"{t} success" for t in tasks] + [f"{t} ci_low" for t in tasks]
     header += [f"{t} ci_high" for t in tasks] + [f"condition {c}" for c in conditions]
     writer.writerow(header)
@@ -109,6 +111,11 @@ def _leaderboard_csv(board: LeaderboardOut) -> str:
             row.tied,
             row.submitted_at.isoformat(),
             row.submission_id,
+            row.team or "",
+            _csv_safe(row.team_display_name or ""),
+            _csv_safe(row.method or ""),
+            row.paper_url or "",
+            row.code_url or "",
         ]
         for key in ("success_rate", "ci_low", "ci_high"):
             cells += [f"{row.tasks[t][key]:.4f}" if t in row.tasks else "" for t in tasks]

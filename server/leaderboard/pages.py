@@ -26,7 +26,7 @@ def _value(row: Row, key: str) -> Any:
         return row.tasks.get(name, {}).get("success_rate")
     if kind == "cond":
         return row.conditions.get(name)
-    return {"score": row.score, "user": row.username, "submitted": row.submitted_at}.get(kind)
+    return {"score": row.score, "user": row.participant, "submitted": row.submitted_at}.get(kind)
 
 
 def sort_rows(rows: list[Row], key: str, descending: bool) -> list[Row]:

@@ -11,7 +11,16 @@ from server.kit.schemas import Page
 
 class LeaderboardRowOut(BaseModel):
     rank: int | None = Field(description="1 for the best score; null for a baseline (unranked).")
-    username: str
+    username: str = Field(description="Who submitted (for a team's row: the member who did).")
+    team: str | None = Field(
+        default=None,
+        description="The team's name, for a team's row (a challenge with team mode on); its "
+        "page is /teams/{team}.",
+    )
+    team_display_name: str | None = Field(default=None, description="The team's display name.")
+    method: str | None = Field(default=None, description="The submission's method name.")
+    paper_url: str | None = Field(default=None, description="An http(s) link to its paper.")
+    code_url: str | None = Field(default=None, description="An http(s) link to its code.")
     submission_id: int
     baseline: bool
     score: float

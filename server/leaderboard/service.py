@@ -1,7 +1,8 @@
-"""Leaderboards: one row per user (their best public succeeded submission) plus baselines.
+"""Leaderboards: one row per user (their best public succeeded submission), or per team in
+team mode, plus baselines.
 
-Rows live in ``leaderboard_entries``, recomputed for one (phase, user) whenever something that
-decides them changes (a result, a re-run, hiding, visibility, the baseline flag). Each change
+Rows live in ``leaderboard_entries``, recomputed by :mod:`server.leaderboard.entries` whenever
+something that decides them changes. Each change
 bumps the phase's ``leaderboard_version``; readers cache pages per version, so a leaderboard
 request costs one indexed lookup of the version when nothing changed, and a page read by the
 rank index when something did.
@@ -17,106 +18,24 @@ from dataclasses import dataclass, field, replace
 from datetime import datetime
 from typing import Any, TypeVar
 
-from sqlalchemy import and_, delete, func, or_, select, update
+from sqlalchemy import and_, func, or_, select
 from sqlalchemy.orm import Session as DB
 
-from evaluator.stats import wilson_interval
 from server.challenges.charts import ScorePoint
 from server.challenges.service import get_challenge, get_phase, suite_of
 from server.kit.errors import NotFound
+from server.leaderboard.entries import refresh as refresh
+from server.leaderboard.entries import summary
 from server.models import (
     Challenge,
     LeaderboardEntry,
     Phase,
     State,
     Submission,
-    TaskResultRow,
     User,
 )
 
 V = TypeVar("V")
-
-
-def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
-    """Recompute a user's rows in a phase's leaderboard (call inside the changing transaction)."""
-    # Serialise refreshes of one user: the unique (phase, owner) row must not be raced.
-    username = db.scalar(select(User.username).where(User.id == user_id).with_for_update())
-    db.execute(
-        delete(LeaderboardEntry).where(
-            LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.user_id == user_id
-        )
-    )
-    eligible = db.scalars(
-        select(Submission)
-        .where(
-            Submission.phase_id == phase_id,
-            Submission.user_id == user_id,
-            Submission.state == State.SUCCEEDED,
-            Submission.public.is_(True),
-            Submission.hidden.is_(False),
-            Submission.score.is_not(None),
-        )
-        .order_by(Submission.score.desc(), Submission.created_at, Submission.id)
-    ).all()
-    best_regular = next((s for s in eligible if not s.baseline), None)
-    chosen = [s for s in eligible if s.baseline]
-    if best_regular is not None:
-        chosen.append(best_regular)
-    for submission in chosen:
-        assert submission.score is not None
-        assert username is not None
-        db.add(
-            LeaderboardEntry(
-                phase_id=phase_id,
-                submission_id=submission.id,
-                user_id=user_id,
-                owner_key=None if submission.baseline else user_id,
-                baseline=submission.baseline,
-                score=submission.score,
-                submitted_at=submission.created_at,
-                username=username,
-                summary=summary(db, submission=submission),
-            )
-        )
-    db.execute(
-        update(Phase)
-        .where(Phase.id == phase_id)
-        .values(leaderboard_version=Phase.leaderboard_version + 1)
-    )
-    db.flush()
-
-
-def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
-    """Per-condition scores and per-task success with intervals, for the leaderboard row."""
-    rows = db.scalars(
-        select(TaskResultRow)
-        .where(
-            TaskResultRow.submission_id == submission.id,
-            TaskResultRow.attempt == submission.attempt,
-        )
-        .order_by(TaskResultRow.id)
-    ).all()
-    conditions: dict[str, list[float]] = {}
-    tasks: dict[str, dict[str, float]] = {}
-    first: str | None = None
-    successes = episodes = 0
-    for row in rows:
-        first = first or row.condition
-        conditions.setdefault(row.condition, []).append(row.success_rate)
-        if row.condition == first:
-            tasks[row.env_id] = {
-                "success_rate": row.success_rate,
-                "ci_low": row.ci_low,
-                "ci_high": row.ci_high,
-            }
-            successes += row.successes
-            episodes += row.episodes
-    return {
-        "conditions": {name: sum(v) / len(v) for name, v in conditions.items()},
-        "tasks": tasks,
-        # The score's 95% interval: Wilson over the first condition's episodes pooled.
-        "score_interval": list(wilson_interval(successes, episodes)) if rows else None,
-    }
 
 
 def board_version(db: DB, *, slug: str, phase: str) -> tuple[int, int]:
@@ -203,6 +122,16 @@ class Row:
     score_ci_high: float | None = None
     tied: bool = False
     """Statistically tied with the ranked row above: their score intervals overlap."""
+    team: str | None = None  # the team's name for a team's row (team mode)
+    team_display_name: str | None = None
+    method: str | None = None
+    paper_url: str | None = None
+    code_url: str | None = None
+
+    @property
+    def participant(self) -> str:
+        """Who the row is: the team's display name, or the user's name."""
+        return self.team_display_name or self.username
 
     def in_order(self, *, tasks: Sequence[str], conditions: Sequence[str]) -> Row:
         """This row with its tasks and conditions in the suite's order (unknown ones last)."""
@@ -303,6 +232,11 @@ def _read_page(db: DB, phase_id: int, page: int, per_page: int, meta: _Meta) -> 
             LeaderboardEntry.score,
             LeaderboardEntry.submitted_at,
             LeaderboardEntry.summary,
+            LeaderboardEntry.team_name,
+            LeaderboardEntry.team_display_name,
+            LeaderboardEntry.method,
+            LeaderboardEntry.paper_url,
+            LeaderboardEntry.code_url,
         )
         .where(LeaderboardEntry.phase_id == phase_id)
         .order_by(*_RANK_ORDER)
@@ -316,8 +250,14 @@ def _read_page(db: DB, phase_id: int, page: int, per_page: int, meta: _Meta) -> 
     rank = offset - baselines_before
     above = _ranked_before(db, phase_id, first) if rank > 0 else None
     rows: list[Row] = []
-    for entry_id, username, submission_id, baseline, score, submitted_at, data in entries:
-        del entry_id
+    for entry in entries:
+        username, submission_id, baseline, score, data = (
+            entry.username,
+            entry.submission_id,
+            entry.baseline,
+            entry.score,
+            entry.summary,
+        )
         interval = _interval(db, data, submission_id)
         if not baseline:
             rank += 1
@@ -328,12 +268,17 @@ def _read_page(db: DB, phase_id: int, page: int, per_page: int, meta: _Meta) -> 
                 submission_id=submission_id,
                 baseline=baseline,
                 score=score,
-                submitted_at=submitted_at,
+                submitted_at=entry.submitted_at,
                 conditions=data.get("conditions", {}),
                 tasks=data.get("tasks", {}),
                 score_ci_low=interval[0] if interval else None,
                 score_ci_high=interval[1] if interval else None,
                 tied=not baseline and overlaps(interval, above),
+                team=entry.team_name,
+                team_display_name=entry.team_display_name,
+                method=entry.method,
+                paper_url=entry.paper_url,
+                code_url=entry.code_url,
             )
         )
         if not baseline:

@@ -21,6 +21,7 @@ from server.models.submissions import (
     TaskResultRow,
     Transition,
 )
+from server.models.teams import Team, TeamInvitation, TeamMember
 
 __all__ = [
     "ACTIVE_STATES",
@@ -39,6 +40,9 @@ __all__ = [
     "State",
     "Submission",
     "TaskResultRow",
+    "Team",
+    "TeamInvitation",
+    "TeamMember",
     "Transition",
     "UTCDateTime",
     "User",

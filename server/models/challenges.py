@@ -21,6 +21,8 @@ class Challenge(Base):
     suite_hash: Mapped[str] = mapped_column(String(64))
     quota_per_day: Mapped[int] = mapped_column(Integer, default=5)
     quota_concurrent: Mapped[int] = mapped_column(Integer, default=1)
+    team_mode: Mapped[bool] = mapped_column(Boolean, default=False)
+    """Quotas and leaderboard rows count per team instead of per user (docs/server.md, Teams)."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 

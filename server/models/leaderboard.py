@@ -1,4 +1,5 @@
-"""The stored leaderboard: one precomputed row per (phase, user) and per baseline."""
+"""The stored leaderboard: one precomputed row per (phase, user), per (phase, team) in team
+mode, and per baseline."""
 
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ from server.models.base import Base
 
 
 class LeaderboardEntry(Base):
-    """One row of a phase's leaderboard: a user's best public succeeded submission, or a
-    submission an admin flagged as a baseline (each baseline is its own row).
+    """One row of a phase's leaderboard: a user's (or in team mode a team's) best public
+    succeeded submission, or a submission an admin flagged as a baseline (each baseline is its
+    own row).
 
     Maintained by ``server.leaderboard.service.refresh`` whenever one of its inputs changes, so that
     reading a leaderboard is one indexed range scan however many submissions exist.
@@ -24,6 +26,9 @@ class LeaderboardEntry(Base):
         # owner_key is the user id for regular rows and NULL for baselines: at most one
         # regular row per user and phase, any number of baselines.
         UniqueConstraint("phase_id", "owner_key"),
+        # team_id is the team for a team's row (team mode) and NULL otherwise: at most one row
+        # per team and phase. A separate key space: a team id never collides with a user id.
+        UniqueConstraint("phase_id", "team_id", name="uq_leaderboard_entries_phase_team"),
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
@@ -33,10 +38,21 @@ class LeaderboardEntry(Base):
     )
     user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
     owner_key: Mapped[int | None] = mapped_column(Integer)
+    """The user for a user's row; NULL for a baseline and for a team's row."""
+    team_id: Mapped[int | None] = mapped_column(
+        ForeignKey("teams.id", ondelete="CASCADE"), index=True
+    )
+    """The team for a team's row (team mode); NULL otherwise."""
+    team_name: Mapped[str | None] = mapped_column(String(32))
+    team_display_name: Mapped[str | None] = mapped_column(String(64))
     baseline: Mapped[bool] = mapped_column(Boolean)
     score: Mapped[float] = mapped_column(Float)
     submitted_at: Mapped[datetime]
     username: Mapped[str] = mapped_column(String(32))
+    """Who submitted the row's submission (for a team's row: the member who did)."""
+    method: Mapped[str | None] = mapped_column(String(100))
+    paper_url: Mapped[str | None] = mapped_column(String(500))
+    code_url: Mapped[str | None] = mapped_column(String(500))
     summary: Mapped[dict[str, Any]]
     """Per-condition scores and per-task success with intervals, as the leaderboard shows."""
 

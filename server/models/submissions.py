@@ -77,6 +77,10 @@ class Submission(Base):
     """An http(s) link to the method's paper (optional)."""
     code_url: Mapped[str | None] = mapped_column(String(500))
     """An http(s) link to the method's code (optional)."""
+    team_id: Mapped[int | None] = mapped_column(
+        ForeignKey("teams.id", ondelete="SET NULL"), index=True
+    )
+    """The submitter's team when it was made: it stays the team's (docs/server.md, Teams)."""
     public: Mapped[bool] = mapped_column(Boolean, default=True)
     hidden: Mapped[bool] = mapped_column(Boolean, default=False)
     baseline: Mapped[bool] = mapped_column(Boolean, default=False)

@@ -10,17 +10,16 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import datetime, timedelta
+from datetime import datetime
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import joinedload
 
 from evaluator.bundled import LOCAL_PREFIX
-from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, QuotaExceeded, Unavailable
+from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, Unavailable
 from server.leaderboard.service import refresh
 from server.models import (
-    ACTIVE_STATES,
     FINAL_STATES,
     Challenge,
     EpisodeResultRow,
@@ -35,14 +34,8 @@ from server.models import (
 )
 from server.submissions.changes import changed
 from server.submissions.method import Method
+from server.submissions.quota import check_quota
 from server.submissions.states import new_attempt, transition
-
-# A submission reserves quota from the moment it is accepted; if it ends in `error` (our
-# fault) or `cancelled` the reservation is released. Running and policy-caused endings count.
-QUOTA_HOLDING = frozenset(
-    {State.QUEUED, State.LAUNCHING, State.RUNNING, State.SUCCEEDED, State.FAILED, State.TIMED_OUT}
-)
-DAY = timedelta(days=1)
 
 
 @dataclass(frozen=True)
@@ -129,14 +122,14 @@ def submit(
     # Resolve before taking the lock: it talks to the registry.
     resolved = resolve_as(resolve, image, owner=user.username)
 
-    # Serialise this user's submissions so that two concurrent ones cannot both pass the quota.
-    db.execute(select(User.id).where(User.id == user.id).with_for_update())
-    check_quota(db, user=user, challenge=challenge, now=now)
+    # Locks the user (and their team): concurrent submissions cannot both pass the quota.
+    team_id = check_quota(db, user=user, challenge=challenge, now=now)
 
     submission = Submission(
         user=user,  # the objects, not only their ids: the answer shows them
         challenge=challenge,
         phase=phase,
+        team_id=team_id,
         image=image,
         pinned_image=resolved.pinned,
         image_bytes=resolved.size_bytes,
@@ -164,63 +157,6 @@ def submit(
     db.add(Outbox(submission_id=submission.id, attempt=1, created_at=now))
     db.flush()
     return submission
-
-
-@dataclass(frozen=True)
-class QuotaUse:
-    per_day_used: int
-    per_day_limit: int
-    concurrent_used: int
-    concurrent_limit: int
-    resets_at: datetime | None
-
-
-def quota_use(db: DB, *, user: User, challenge: Challenge, now: datetime) -> QuotaUse:
-    """How much of the challenge's daily and concurrent quota the user holds now."""
-    base = select(Submission.created_at).where(
-        Submission.user_id == user.id, Submission.challenge_id == challenge.id
-    )
-    day = db.scalars(
-        base.where(Submission.created_at > now - DAY, Submission.state.in_(QUOTA_HOLDING)).order_by(
-            Submission.created_at
-        )
-    ).all()
-    active = db.scalar(
-        select(func.count())
-        .select_from(Submission)
-        .where(
-            Submission.user_id == user.id,
-            Submission.challenge_id == challenge.id,
-            Submission.state.in_(ACTIVE_STATES),
-        )
-    )
-    resets_at = day[0] + DAY if len(day) >= challenge.quota_per_day else None
-    return QuotaUse(
-        per_day_used=len(day),
-        per_day_limit=challenge.quota_per_day,
-        concurrent_used=active or 0,
-        concurrent_limit=challenge.quota_concurrent,
-        resets_at=resets_at,
-    )
-
-
-def check_quota(db: DB, *, user: User, challenge: Challenge, now: datetime) -> None:
-    """Raise QuotaExceeded (with when to try again) if the user may not submit now."""
-    use = quota_use(db, user=user, challenge=challenge, now=now)
-    if use.resets_at is not None:
-        raise QuotaExceeded(
-            f"daily quota of {use.per_day_limit} submissions to {challenge.slug!r} used; "
-            f"the next one is possible at {use.resets_at:%Y-%m-%d %H:%M:%S} UTC",
-            retry_after=(use.resets_at - now).total_seconds(),
-            resets_at=use.resets_at.isoformat(),
-        )
-    if use.concurrent_used >= use.concurrent_limit:
-        raise QuotaExceeded(
-            f"{use.concurrent_used} of your submissions to {challenge.slug!r} are still "
-            f"queued or running (limit {use.concurrent_limit}); wait for one to finish",
-            retry_after=60,
-            resets_at=None,
-        )
 
 
 def visible_to(submission: Submission, user: User | None) -> bool:

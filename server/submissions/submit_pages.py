@@ -17,7 +17,8 @@ from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, sig
 from server.models import Challenge, State, User, utcnow
 from server.registry.tokens import namespace_for
 from server.submissions.method import Method
-from server.submissions.service import images_refused, list_submissions, quota_use, submit
+from server.submissions.quota import quota_use
+from server.submissions.service import images_refused, list_submissions, submit
 
 router = APIRouter(include_in_schema=False)
 

@@ -29,8 +29,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.kit.db import make_engine, session_factory
 from server.kit.settings import Settings
 from server.models import Cause, State, Submission, Transition, utcnow
+from server.submissions.quota import quota_use
 from server.submissions.reports import report_state
-from server.submissions.service import quota_use
 from server.submissions.work import claim_next, end_restarted, end_stopped
 from tests.cli.conftest import REPO, LiveServer, Participant, clean_environment, free_port
 from tests.cli.push_support import (

@@ -169,6 +169,21 @@ def test_register_token_submit_follow_live_and_find_it_on_the_leaderboard(
         expect(page.get_by_role("rowheader", name="laptop")).to_be_visible()
         assert plaintext not in page.content()  # shown once
 
+        # A team: created through "your team", shown on its page; a rejected invitation is
+        # the form again with its problem (and no console error).
+        page.get_by_role("navigation", name="Main").get_by_role("link", name="Team").click()
+        page.get_by_label("Team name").fill("testers")
+        page.get_by_label("Display name").fill("The Testers")
+        page.get_by_role("button", name="Create team").click()
+        expect(page).to_have_url(re.compile(r"/teams/testers\?done=created$"))
+        expect(page.get_by_role("heading", name=re.compile("The Testers"))).to_be_visible()
+        page.get_by_label("User name").fill("nobody")
+        page.get_by_role("button", name="Invite").click()
+        expect(page.get_by_text("no such user")).to_be_visible()
+        shot("team")
+        page.goto(f"{server.url}/team")
+        expect(page.get_by_role("link", name="The Testers")).to_be_visible()
+
         page.goto(f"{server.url}/challenges/server-tiny")
         shot("challenge")
         page.get_by_role("link", name="Submit a policy").click()

@@ -1,0 +1,223 @@
+"""The stored rows of a leaderboard: recomputed for one (phase, user), or one (phase, team) in
+team mode, whenever something that decides them changes (a result, a re-run, hiding,
+visibility, the baseline flag, the method, a team's membership).
+
+Who a row belongs to (docs/server.md, Teams):
+- per-user mode (the default): a user's best public succeeded submission, whatever team they
+  were in when they made it;
+- team mode: a team's best submission made in the team (`Submission.team_id`, fixed when it was
+  made), whoever of its members made it; a user not in a team has the row of their best
+  submission made outside any team; a user in a team has no row of their own.
+Baselines are always rows of their own.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import delete, select, update
+from sqlalchemy.orm import Session as DB
+
+from evaluator.stats import wilson_interval
+from server.models import (
+    Challenge,
+    LeaderboardEntry,
+    Phase,
+    State,
+    Submission,
+    TaskResultRow,
+    Team,
+    TeamMember,
+    User,
+)
+
+
+def _eligible(phase_id: int) -> tuple[Any, ...]:
+    return (
+        Submission.phase_id == phase_id,
+        Submission.state == State.SUCCEEDED,
+        Submission.public.is_(True),
+        Submission.hidden.is_(False),
+        Submission.score.is_not(None),
+    )
+
+
+_BEST = (Submission.score.desc(), Submission.created_at, Submission.id)
+
+
+def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
+    """Recompute a user's rows in a phase's leaderboard and, in team mode, the rows of the
+    teams they submitted in (call inside the changing transaction)."""
+    team_mode = bool(
+        db.scalar(
+            select(Challenge.team_mode)
+            .join(Phase, Phase.challenge_id == Challenge.id)
+            .where(Phase.id == phase_id)
+        )
+    )
+    # Serialise refreshes of one user (then of a team): the unique rows must not be raced.
+    # Every writer locks a user before a team, and teams in id order.
+    username = db.scalar(select(User.username).where(User.id == user_id).with_for_update())
+    if username is None:
+        return
+    _refresh_user(db, phase_id=phase_id, user_id=user_id, username=username, team_mode=team_mode)
+    if team_mode:
+        teams = db.scalars(
+            select(Submission.team_id)
+            .where(
+                Submission.phase_id == phase_id,
+                Submission.user_id == user_id,
+                Submission.team_id.is_not(None),
+            )
+            .distinct()
+        ).all()
+        for team_id in sorted(t for t in teams if t is not None):
+            _refresh_team(db, phase_id=phase_id, team_id=team_id)
+    db.execute(
+        update(Phase)
+        .where(Phase.id == phase_id)
+        .values(leaderboard_version=Phase.leaderboard_version + 1)
+    )
+    db.flush()
+
+
+def _refresh_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mode: bool) -> None:
+    db.execute(
+        delete(LeaderboardEntry).where(
+            LeaderboardEntry.phase_id == phase_id,
+            LeaderboardEntry.user_id == user_id,
+            LeaderboardEntry.team_id.is_(None),
+        )
+    )
+    eligible = db.scalars(
+        select(Submission)
+        .where(*_eligible(phase_id), Submission.user_id == user_id)
+        .order_by(*_BEST)
+    ).all()
+    chosen = [s for s in eligible if s.baseline]
+    own = [s for s in eligible if not s.baseline]
+    if team_mode:
+        in_team = db.scalar(select(TeamMember.team_id).where(TeamMember.user_id == user_id))
+        own = [] if in_team is not None else [s for s in own if s.team_id is None]
+    chosen += own[:1]
+    for submission in chosen:
+        key = None if submission.baseline else user_id
+        db.add(_entry(db, submission, username=username, owner_key=key, team=None))
+
+
+def _refresh_team(db: DB, *, phase_id: int, team_id: int) -> None:
+    team = db.scalar(select(Team).where(Team.id == team_id).with_for_update())
+    db.execute(
+        delete(LeaderboardEntry).where(
+            LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.team_id == team_id
+        )
+    )
+    if team is None:
+        return
+    best = db.execute(
+        select(Submission, User.username)
+        .join(User, User.id == Submission.user_id)
+        .where(*_eligible(phase_id), Submission.team_id == team_id, Submission.baseline.is_(False))
+        .order_by(*_BEST)
+        .limit(1)
+    ).first()
+    if best is not None:
+        db.add(_entry(db, best[0], username=best[1], owner_key=None, team=team))
+
+
+def _entry(
+    db: DB, submission: Submission, *, username: str, owner_key: int | None, team: Team | None
+) -> LeaderboardEntry:
+    assert submission.score is not None
+    return LeaderboardEntry(
+        phase_id=submission.phase_id,
+        submission_id=submission.id,
+        user_id=submission.user_id,
+        owner_key=owner_key,
+        team_id=team.id if team is not None else None,
+        team_name=team.name if team is not None else None,
+        team_display_name=team.display_name if team is not None else None,
+        baseline=submission.baseline,
+        score=submission.score,
+        submitted_at=submission.created_at,
+        username=username,
+        method=submission.method,
+        paper_url=submission.paper_url,
+        code_url=submission.code_url,
+        summary=summary(db, submission=submission),
+    )
+
+
+def refresh_member(db: DB, *, user_id: int) -> None:
+    """Recompute every team-mode board the user has submitted to: their team changed."""
+    phases = db.scalars(
+        select(Submission.phase_id)
+        .join(Challenge, Challenge.id == Submission.challenge_id)
+        .where(Submission.user_id == user_id, Challenge.team_mode.is_(True))
+        .distinct()
+    ).all()
+    for phase_id in sorted(phases):
+        refresh(db, phase_id=phase_id, user_id=user_id)
+
+
+def release_team(db: DB, *, team_id: int) -> None:
+    """Before a team is deleted: its submissions become their submitters' own again and its
+    rows go; every board they were on is recomputed."""
+    made = db.execute(
+        select(Submission.phase_id, Submission.user_id).where(Submission.team_id == team_id)
+    ).all()
+    db.execute(update(Submission).where(Submission.team_id == team_id).values(team_id=None))
+    db.execute(delete(LeaderboardEntry).where(LeaderboardEntry.team_id == team_id))
+    for phase_id, user_id in sorted(set(made)):
+        refresh(db, phase_id=phase_id, user_id=user_id)
+
+
+def rebuild(db: DB, *, challenge_id: int) -> None:
+    """Recompute every board of a challenge (its team mode changed)."""
+    phases = db.scalars(select(Phase.id).where(Phase.challenge_id == challenge_id)).all()
+    for phase_id in phases:
+        db.execute(delete(LeaderboardEntry).where(LeaderboardEntry.phase_id == phase_id))
+        users = db.scalars(
+            select(Submission.user_id).where(Submission.phase_id == phase_id).distinct()
+        ).all()
+        for user_id in sorted(users):
+            refresh(db, phase_id=phase_id, user_id=user_id)
+        db.execute(
+            update(Phase)
+            .where(Phase.id == phase_id)
+            .values(leaderboard_version=Phase.leaderboard_version + 1)
+        )
+    db.flush()
+
+
+def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
+    """Per-condition scores and per-task success with intervals, for the leaderboard row."""
+    rows = db.scalars(
+        select(TaskResultRow)
+        .where(
+            TaskResultRow.submission_id == submission.id,
+            TaskResultRow.attempt == submission.attempt,
+        )
+        .order_by(TaskResultRow.id)
+    ).all()
+    conditions: dict[str, list[float]] = {}
+    tasks: dict[str, dict[str, float]] = {}
+    first: str | None = None
+    successes = episodes = 0
+    for row in rows:
+        first = first or row.condition
+        conditions.setdefault(row.condition, []).append(row.success_rate)
+        if row.condition == first:
+            tasks[row.env_id] = {
+                "success_rate": row.success_rate,
+                "ci_low": row.ci_low,
+                "ci_high": row.ci_high,
+            }
+            successes += row.successes
+            episodes += row.episodes
+    return {
+        "conditions": {name: sum(v) / len(v) for name, v in conditions.items()},
+        "tasks": tasks,
+        # The score's 95% interval: Wilson over the first condition's episodes pooled.
+        "score_interval": list(wilson_interval(successes, episodes)) if rows else None,
+    }
