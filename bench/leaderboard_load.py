@@ -3,13 +3,19 @@ uvicorn, loaded by wrk from another process.
 
 Seeds a fresh database (dropped at the end) with users, submissions in every state, per-task
 results and the leaderboard rows they imply (checked against ``refresh`` on a sample), times the
-first (uncached) requests, then runs wrk at fixed concurrency over a rotation of leaderboard
-pages and prints requests, req/s, latency percentiles, errors and the goal check
-(p95 <= 50 ms at >= 500 req/s).
+first (uncached) requests, then runs wrk at fixed concurrency and prints requests, req/s,
+latency percentiles, errors and the goal check (p95 <= 50 ms at >= 500 req/s). The last line
+is `leaderboard_p95_ms <p95 of the last run>`.
+
+What wrk asks for (`--mix`): `honest` (the default, bench/leaderboard_mix.py) is every page of
+both phases at four page sizes as JSON, at two as CSV, and the web page under every kind of
+sort, thousands of distinct URLs in a shuffled order, while `--writes-per-s` submissions finish
+(each one refreshes a leaderboard row and moves the board on, as a worker's report does);
+`rotation` is the former figure: 10 JSON pages in turn, nothing written, all cache hits.
 
     .venv/bin/python bench/leaderboard_load.py [--users 10000] [--submissions 100000]
-        [--duration 20] [--connections 16 ...] [--server-workers 1 [--uvicorn-workers]]
-        [--keep-db]
+        [--duration 20] [--connections 16 ...] [--mix honest|rotation] [--writes-per-s 2]
+        [--server-workers 1 [--uvicorn-workers]] [--keep-db]
 
 Needs wrk (Debian package ``wrk``) and the local Postgres (``MANIEVAL_BENCH_POSTGRES``, default
 ``postgresql+psycopg://postgres@127.0.0.1:5432/postgres``).
@@ -39,13 +45,20 @@ BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
 sys.path.insert(0, str(REPO))
 
+import leaderboard_mix as mix  # noqa: E402
 import leaderboard_seed as seeding  # noqa: E402
 from fastapi import FastAPI  # noqa: E402
 from sqlalchemy import Engine, create_engine, text  # noqa: E402
 from sqlalchemy.orm import Session  # noqa: E402
 
+from evaluator.results import SuiteRef  # noqa: E402
 from server.app import create_app  # noqa: E402
-from server.challenges.service import ChallengeOptions, load_challenge, suite_of  # noqa: E402
+from server.challenges.service import (  # noqa: E402
+    ChallengeOptions,
+    get_challenge,
+    load_challenge,
+    suite_of,
+)
 from server.kit.db import make_engine, upgrade  # noqa: E402
 from server.kit.settings import Settings  # noqa: E402
 
@@ -346,12 +359,23 @@ def cache_misses(base: str, url: str, bumps: int) -> None:
     engine.dispose()
 
 
-def report(runs: list[Run], args: argparse.Namespace) -> None:
+def board_shape(url: str) -> tuple[SuiteRef, list[str], list[str]]:
+    """The challenge's suite reference, tasks and stress conditions."""
+    engine = make_engine(url)
+    with Session(engine) as db:
+        challenge = get_challenge(db, slug=SLUG)
+        suite = suite_of(challenge)
+        ref = SuiteRef(name=suite.name, version=suite.version, sha256=challenge.suite_hash)
+        shape = ref, [t.env_id for t in suite.tasks], [c.name for c in suite.conditions[1:]]
+    engine.dispose()
+    return shape
+
+
+def report(runs: list[Run], args: argparse.Namespace, what: str) -> None:
     how = "uvicorn --workers" if args.uvicorn_workers else "uvicorn processes (SO_REUSEPORT):"
     print(
         f"\nwrk: 1 thread, {args.duration:.0f} s per run after {args.warmup:.0f} s of warm-up, "
-        f"rotating {2 * args.pages} URLs (dev and test, pages 1-{args.pages}, per_page=50); "
-        f"{how} {args.server_workers}"
+        f"{what}; {how} {args.server_workers}"
     )
     head = ("conns", "requests", "req/s", "p50 ms", "p95 ms", "p99 ms", "max ms", "errors")
     print("".join(f"{h:>9}" for h in head) + "  goal  cpu% server/pg/wrk/other  db connects")
@@ -379,7 +403,11 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=20.0, help="seconds per measured run")
     parser.add_argument("--warmup", type=float, default=5.0, help="seconds of wrk before each")
     parser.add_argument("--connections", type=int, nargs="+", default=[16])
+    parser.add_argument("--mix", choices=("honest", "rotation"), default="honest")
     parser.add_argument("--pages", type=int, default=5, help="pages per phase in the rotation")
+    parser.add_argument(
+        "--writes-per-s", type=float, default=2.0, help="submissions finishing (honest mix)"
+    )
     parser.add_argument("--server-workers", type=int, default=1, help="uvicorn processes")
     parser.add_argument(
         "--uvicorn-workers",
@@ -402,12 +430,41 @@ def main() -> None:
         servers = start_servers(url, args.server_workers, args.uvicorn_workers, work)
         cache_misses(servers.base_url, url, bumps=5)
         target = Target(servers.base_url, servers.pids, admin, name, work)
-        paths = leaderboard_paths(args.pages)
+        suite, tasks, stresses = board_shape(url)
+        if args.mix == "honest":
+            reader = make_engine(url)
+            paths = mix.mixed_paths(reader, slug=SLUG, tasks=tasks, stresses=stresses)
+            reader.dispose()
+            what = (
+                f"{len(paths):,} distinct URLs in a shuffled order (JSON, CSV, web pages), "
+                f"{args.writes_per_s:g} submissions finishing per second"
+            )
+        else:
+            paths = leaderboard_paths(args.pages)
+            what = f"rotating {len(paths)} URLs (dev and test, pages 1-{args.pages}, per_page=50)"
+        writes_per_s = args.writes_per_s if args.mix == "honest" else 0.0
+        finisher = None
+        if writes_per_s > 0:
+            finisher = mix.Finisher(
+                url, per_second=writes_per_s, suite=suite, tasks=tasks, stresses=stresses
+            )
+            finisher.start()
         runs = []
-        for connections in args.connections:
-            run_wrk(target, paths, connections=connections, seconds=args.warmup)
-            runs.append(run_wrk(target, paths, connections=connections, seconds=args.duration))
-        report(runs, args)
+        started = time.monotonic()
+        try:
+            for connections in args.connections:
+                run_wrk(target, paths, connections=connections, seconds=args.warmup)
+                runs.append(run_wrk(target, paths, connections=connections, seconds=args.duration))
+        finally:
+            if finisher is not None:
+                finisher.stop()
+        report(runs, args, what)
+        if finisher is not None:
+            rate = finisher.finished / (time.monotonic() - started)
+            print(f"writes: {finisher.finished} submissions finished ({rate:.1f}/s)")
+            for problem in finisher.failed[:5]:
+                print(f"  a write failed: {problem}")
+        print(f"leaderboard_p95_ms {runs[-1].p95_ms:.1f}")
     finally:
         if servers is not None:
             servers.stop()

@@ -182,7 +182,9 @@ def summary(layout: Layout, counts: np.ndarray) -> dict[str, Any]:
         for env_id, rate, k in zip(layout.tasks, rates[0], counts[-1, 0].tolist(), strict=True)
     }
     conditions = {c: sum(r) / len(r) for c, r in zip(layout.conditions, rates, strict=True)}
-    return {"conditions": conditions, "tasks": tasks}
+    first = counts[-1, 0].tolist()  # the score's interval: Wilson over the first condition's
+    pooled = wilson_interval(sum(first), EPISODES * len(first))  # episodes, pooled
+    return {"conditions": conditions, "tasks": tasks, "score_interval": list(pooled)}
 
 
 def entry_rows(layout: Layout, subs: Submissions) -> Iterator[tuple[Any, ...]]:
