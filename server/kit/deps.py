@@ -16,7 +16,8 @@ from server.kit import security
 from server.kit.errors import Forbidden, RateLimited, Unauthorized
 from server.kit.ratelimit import Rate, RateLimiter
 from server.kit.settings import Settings
-from server.leaderboard.service import LeaderboardCache, RenderedPages
+from server.leaderboard.service import LeaderboardCache
+from server.leaderboard.snapshot import Snapshots
 from server.models import Session, User
 from server.submissions.outbox import Dispatcher
 from server.submissions.service import Resolver
@@ -34,10 +35,11 @@ class Services:
     resolve: Resolver
     dispatcher: Dispatcher
     leaderboards: LeaderboardCache = field(default_factory=LeaderboardCache)
-    leaderboard_pages: RenderedPages = field(init=False)
+    boards: Snapshots = field(init=False)
+    """Whole boards per phase for the leaderboard API (server/leaderboard/snapshot.py)."""
 
     def __post_init__(self) -> None:
-        self.leaderboard_pages = RenderedPages(self.settings.leaderboard_max_age)
+        self.boards = Snapshots(self.settings.leaderboard_max_age)
 
     @property
     def csrf_key(self) -> bytes:

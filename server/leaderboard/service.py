@@ -3,18 +3,17 @@ team mode, plus baselines.
 
 Rows live in ``leaderboard_entries``, recomputed by :mod:`server.leaderboard.entries` whenever
 something that decides them changes. Each change
-bumps the phase's ``leaderboard_version``; readers cache pages per version, so a leaderboard
-request costs one indexed lookup of the version when nothing changed, and a page read by the
-rank index when something did.
+bumps the phase's ``leaderboard_version``; readers keep what they read per version: the pages
+and challenge pages, pages read by the rank index (`LeaderboardCache`), the API whole boards
+(:mod:`server.leaderboard.snapshot`).
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from datetime import datetime
 from typing import Any, TypeVar
 
@@ -159,7 +158,7 @@ class Board:
 
 
 @dataclass(frozen=True)
-class _Meta:
+class BoardMeta:
     total: int
     baselines: list[tuple[float, datetime, int]]  # rank keys of the baseline rows
 
@@ -174,7 +173,7 @@ class LeaderboardCache:
 
     def __init__(self, size: int = 256) -> None:
         self._pages: OrderedDict[tuple[int, int, int, int], Board] = OrderedDict()
-        self._meta: OrderedDict[tuple[int, int], _Meta] = OrderedDict()
+        self._meta: OrderedDict[tuple[int, int], BoardMeta] = OrderedDict()
         self._size = size
         self._lock = threading.Lock()
 
@@ -188,8 +187,8 @@ class LeaderboardCache:
                 return hit
             meta = self._meta.get((phase_id, version))
         if meta is None:
-            meta = _read_meta(db, phase_id)
-        board = Board(rows=_read_page(db, phase_id, page, per_page, meta), total=meta.total)
+            meta = read_meta(db, phase_id)
+        board = Board(rows=read_page(db, phase_id, page, per_page, meta), total=meta.total)
         with self._lock:
             self._meta[(phase_id, version)] = meta
             self._pages[key] = board
@@ -202,7 +201,8 @@ class LeaderboardCache:
 _RANK_ORDER = (LeaderboardEntry.score.desc(), LeaderboardEntry.submitted_at, LeaderboardEntry.id)
 
 
-def _read_meta(db: DB, phase_id: int) -> _Meta:
+def read_meta(db: DB, phase_id: int) -> BoardMeta:
+    """How many rows the phase's board has, and where its baselines stand."""
     total = db.scalar(
         select(func.count())
         .select_from(LeaderboardEntry)
@@ -213,7 +213,7 @@ def _read_meta(db: DB, phase_id: int) -> _Meta:
         .where(LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.baseline.is_(True))
         .order_by(*_RANK_ORDER)
     ).all()
-    return _Meta(total=total or 0, baselines=[(s, t, i) for s, t, i in baselines])
+    return BoardMeta(total=total or 0, baselines=[(s, t, i) for s, t, i in baselines])
 
 
 def _ahead(a: tuple[float, datetime, int], b: tuple[float, datetime, int]) -> bool:
@@ -221,7 +221,8 @@ def _ahead(a: tuple[float, datetime, int], b: tuple[float, datetime, int]) -> bo
     return (-a[0], a[1], a[2]) < (-b[0], b[1], b[2])
 
 
-def _read_page(db: DB, phase_id: int, page: int, per_page: int, meta: _Meta) -> list[Row]:
+def read_page(db: DB, phase_id: int, page: int, per_page: int, meta: BoardMeta) -> list[Row]:
+    """One page of the phase's board in rank order, ranks and ties decided as on every page."""
     offset = (page - 1) * per_page
     entries = db.execute(
         select(
@@ -314,52 +315,3 @@ def _ranked_before(
         .limit(1)
     ).first()
     return _interval(db, found[0], found[1]) if found is not None else None
-
-
-PageKey = tuple[str, str, int, int, str]  # slug, phase, page, per_page, format
-
-
-@dataclass
-class Rendered:
-    """A leaderboard response as sent, and the board version it shows."""
-
-    version: int
-    body: bytes
-    media_type: str
-    headers: dict[str, str] = field(default_factory=dict)
-    checked: float = 0.0  # time.monotonic() when the version was last confirmed
-
-
-class RenderedPages:
-    """Rendered leaderboard responses, trusted for `max_age` seconds after each check."""
-
-    def __init__(self, max_age: float, size: int = 512) -> None:
-        self._max_age = max_age
-        self._size = size
-        self._pages: OrderedDict[PageKey, Rendered] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def fresh(self, key: PageKey) -> Rendered | None:
-        with self._lock:
-            found = self._pages.get(key)
-            if found is None or time.monotonic() - found.checked >= self._max_age:
-                return None
-            self._pages.move_to_end(key)
-            return found
-
-    def revalidate(self, key: PageKey, version: int) -> Rendered | None:
-        """The cached response if it still shows `version` (and mark it checked now)."""
-        with self._lock:
-            found = self._pages.get(key)
-            if found is None or found.version != version:
-                return None
-            found.checked = time.monotonic()
-            return found
-
-    def store(self, key: PageKey, rendered: Rendered) -> None:
-        rendered.checked = time.monotonic()
-        with self._lock:
-            self._pages[key] = rendered
-            self._pages.move_to_end(key)
-            while len(self._pages) > self._size:
-                self._pages.popitem(last=False)
