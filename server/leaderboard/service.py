@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from datetime import datetime
 from typing import Any, TypeVar
 
-from sqlalchemy import and_, func, or_, select
+from sqlalchemy import Select, and_, func, or_, select
 from sqlalchemy.orm import Session as DB
 
 from server.challenges.charts import ScorePoint
@@ -221,73 +221,104 @@ def _ahead(a: tuple[float, datetime, int], b: tuple[float, datetime, int]) -> bo
     return (-a[0], a[1], a[2]) < (-b[0], b[1], b[2])
 
 
+BOARD_COLUMNS = (
+    LeaderboardEntry.id,
+    LeaderboardEntry.username,
+    LeaderboardEntry.submission_id,
+    LeaderboardEntry.baseline,
+    LeaderboardEntry.score,
+    LeaderboardEntry.submitted_at,
+    LeaderboardEntry.team_name,
+    LeaderboardEntry.team_display_name,
+    LeaderboardEntry.method,
+    LeaderboardEntry.paper_url,
+    LeaderboardEntry.code_url,
+)
+"""What a board row shows besides its summary."""
+
+
+def board_query(phase_id: int, *summary: Any) -> Select[*tuple[Any, ...]]:
+    """The phase's rows in rank order, with these summary columns."""
+    return (
+        select(*BOARD_COLUMNS, *summary)
+        .where(LeaderboardEntry.phase_id == phase_id)
+        .order_by(*_RANK_ORDER)
+    )
+
+
+Interval = tuple[float, float] | None
+
+
+def ranked(
+    db: DB,
+    phase_id: int,
+    offset: int,
+    entries: Sequence[Any],
+    meta: BoardMeta,
+    interval_of: Callable[[Any], Interval],
+) -> Iterator[tuple[Any, int | None, Interval, bool]]:
+    """(entry, rank, score interval, tied) for `entries`, read in rank order from `offset`:
+    baselines are not ranked, and a row is tied when its interval overlaps the ranked row's
+    above it, on this page or the one before."""
+    if not entries:
+        return
+    first = (entries[0].score, entries[0].submitted_at, entries[0].id)
+    rank = offset - sum(1 for b in meta.baselines if _ahead(b, first))
+    above = _ranked_before(db, phase_id, first) if rank > 0 else None
+    for entry in entries:
+        interval = interval_of(entry)
+        if entry.baseline:
+            yield entry, None, interval, False
+            continue
+        rank += 1
+        yield entry, rank, interval, overlaps(interval, above)
+        above = interval
+
+
 def read_page(db: DB, phase_id: int, page: int, per_page: int, meta: BoardMeta) -> list[Row]:
     """One page of the phase's board in rank order, ranks and ties decided as on every page."""
     offset = (page - 1) * per_page
-    entries = db.execute(
-        select(
-            LeaderboardEntry.id,
-            LeaderboardEntry.username,
-            LeaderboardEntry.submission_id,
-            LeaderboardEntry.baseline,
-            LeaderboardEntry.score,
-            LeaderboardEntry.submitted_at,
-            LeaderboardEntry.summary,
-            LeaderboardEntry.team_name,
-            LeaderboardEntry.team_display_name,
-            LeaderboardEntry.method,
-            LeaderboardEntry.paper_url,
-            LeaderboardEntry.code_url,
-        )
-        .where(LeaderboardEntry.phase_id == phase_id)
-        .order_by(*_RANK_ORDER)
-        .offset(offset)
-        .limit(per_page)
-    ).all()
-    if not entries:
-        return []
-    first = (entries[0].score, entries[0].submitted_at, entries[0].id)
-    baselines_before = sum(1 for b in meta.baselines if _ahead(b, first))
-    rank = offset - baselines_before
-    above = _ranked_before(db, phase_id, first) if rank > 0 else None
-    rows: list[Row] = []
-    for entry in entries:
-        username, submission_id, baseline, score, data = (
-            entry.username,
-            entry.submission_id,
-            entry.baseline,
-            entry.score,
-            entry.summary,
-        )
-        interval = _interval(db, data, submission_id)
-        if not baseline:
-            rank += 1
-        rows.append(
-            Row(
-                rank=None if baseline else rank,
-                username=username,
-                submission_id=submission_id,
-                baseline=baseline,
-                score=score,
-                submitted_at=entry.submitted_at,
-                conditions=data.get("conditions", {}),
-                tasks=data.get("tasks", {}),
-                score_ci_low=interval[0] if interval else None,
-                score_ci_high=interval[1] if interval else None,
-                tied=not baseline and overlaps(interval, above),
-                team=entry.team_name,
-                team_display_name=entry.team_display_name,
-                method=entry.method,
-                paper_url=entry.paper_url,
-                code_url=entry.code_url,
-            )
-        )
-        if not baseline:
-            above = interval
-    return rows
+    query = board_query(phase_id, LeaderboardEntry.summary).offset(offset).limit(per_page)
+    entries = db.execute(query).all()
+    rows = ranked(
+        db,
+        phase_id,
+        offset,
+        entries,
+        meta,
+        lambda e: interval_of_summary(db, e.summary, e.submission_id),
+    )
+    return [
+        board_row(entry, entry.summary, rank, interval, tied)
+        for entry, rank, interval, tied in rows
+    ]
 
 
-def _interval(db: DB, stored: dict[str, Any], submission_id: int) -> tuple[float, float] | None:
+def board_row(
+    entry: Any, data: dict[str, Any], rank: int | None, interval: Interval, tied: bool
+) -> Row:
+    """A row as boards show it, from its entry's columns and summary."""
+    return Row(
+        rank=rank,
+        username=entry.username,
+        submission_id=entry.submission_id,
+        baseline=entry.baseline,
+        score=entry.score,
+        submitted_at=entry.submitted_at,
+        conditions=data.get("conditions", {}),
+        tasks=data.get("tasks", {}),
+        score_ci_low=interval[0] if interval else None,
+        score_ci_high=interval[1] if interval else None,
+        tied=tied,
+        team=entry.team_name,
+        team_display_name=entry.team_display_name,
+        method=entry.method,
+        paper_url=entry.paper_url,
+        code_url=entry.code_url,
+    )
+
+
+def interval_of_summary(db: DB, stored: dict[str, Any], submission_id: int) -> Interval:
     """The score's interval from a row's stored summary; for rows stored before summaries held
     it, measured again from the submission's results (until the row is next refreshed)."""
     if "score_interval" not in stored:
@@ -314,4 +345,4 @@ def _ranked_before(
         .order_by(e.score, e.submitted_at.desc(), e.id.desc())
         .limit(1)
     ).first()
-    return _interval(db, found[0], found[1]) if found is not None else None
+    return interval_of_summary(db, found[0], found[1]) if found is not None else None

@@ -13,29 +13,55 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
+from sqlalchemy import Text, cast
 from sqlalchemy.orm import Session as DB
 
 from server.leaderboard.schemas import LeaderboardOut, LeaderboardRowOut
-from server.leaderboard.service import Row, board_version, column_order, read_meta, read_page
+from server.leaderboard.service import (
+    Interval,
+    Row,
+    board_query,
+    board_row,
+    board_version,
+    column_order,
+    interval_of_summary,
+    ranked,
+    read_meta,
+)
+from server.models import LeaderboardEntry
 
 CSV_HEADER = ["rank", "username", "baseline", "score", "score_ci_low", "score_ci_high", "tied"]
 CSV_HEADER += ["submitted_at", "submission_id", "team", "team_display_name", "method"]
 CSV_HEADER += ["paper_url", "code_url"]
 
 
+@dataclass(frozen=True)
+class Ranked:
+    """A row of a snapshot before it is shown: its summary still JSON text, parsed only when a
+    page first shows the row (most rows of a board that changes every second never are)."""
+
+    entry: Any
+    summary_text: str
+    rank: int | None
+    interval: Interval
+    tied: bool
+
+
 @dataclass
 class Snapshot:
-    """A phase's whole board at one version, rows in rank order and in the suite's order."""
+    """A phase's whole board at one version, rows in rank order."""
 
     slug: str
     phase: str
     version: int
-    rows: list[Row]
+    rows: list[Ranked]
     tasks: list[str]
     conditions: list[str]
     checked: float = field(default_factory=time.monotonic)
@@ -77,7 +103,10 @@ class Snapshot:
         return done
 
     def _out(self, index: int) -> LeaderboardRowOut:
-        return LeaderboardRowOut(**self.rows[index].__dict__)
+        r = self.rows[index]
+        row: Row = board_row(r.entry, json.loads(r.summary_text), r.rank, r.interval, r.tied)
+        shown = row.in_order(tasks=self.tasks, conditions=self.conditions)
+        return LeaderboardRowOut(**shown.__dict__)
 
     def _csv_page(self, start: int, stop: int) -> str:
         buf = io.StringIO()
@@ -168,8 +197,24 @@ class Snapshots:
 
 
 def _read(db: DB, *, slug: str, phase: str, phase_id: int, version: int) -> Snapshot:
-    meta = read_meta(db, phase_id)
-    rows = read_page(db, phase_id, 1, max(meta.total, 1), meta)
+    # The summary as text, and only its score interval as JSON: ranks and ties need every
+    # row's interval, the rest is parsed when a page shows the row.
+    summary = LeaderboardEntry.summary
+    text_of = cast(summary, Text).label("summary_text")
+    interval_at = [summary[("score_interval", end)].as_float() for end in (0, 1)]
+    columns = (text_of, interval_at[0].label("ci_low"), interval_at[1].label("ci_high"))
+    entries = db.execute(board_query(phase_id, *columns)).all()
+
+    def interval(entry: Any) -> Interval:
+        if entry.ci_low is not None and entry.ci_high is not None:
+            return (entry.ci_low, entry.ci_high)
+        return interval_of_summary(db, json.loads(entry.summary_text), entry.submission_id)
+
+    rows = [
+        Ranked(entry, entry.summary_text, rank, found, tied)
+        for entry, rank, found, tied in ranked(
+            db, phase_id, 0, entries, read_meta(db, phase_id), interval
+        )
+    ]
     tasks, conditions = column_order(db, slug=slug)
-    ordered = [row.in_order(tasks=tasks, conditions=conditions) for row in rows]
-    return Snapshot(slug, phase, version, ordered, tasks, conditions)
+    return Snapshot(slug, phase, version, rows, tasks, conditions)
