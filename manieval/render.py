@@ -258,10 +258,10 @@ def leaderboard_table(board: JSON) -> Table:
 
 def _participant(row: JSON) -> Text:
     """The row's user, or its team and the member who submitted (team mode)."""
-    if row.get("team"):
-        return Text(row.get("team_display_name") or row["team"]) + Text(
-            f" (by {row['username']})", style="dim"
-        )
+    if row.get("team"):  # the team's own name beside its display name, which anyone may pick
+        shown = row.get("team_display_name") or row["team"]
+        name = f" ({row['team']})" if shown != row["team"] else ""
+        return Text(shown) + Text(f"{name} by {row['username']}", style="dim")
     return Text(row["username"])
 
 

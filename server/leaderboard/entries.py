@@ -7,8 +7,13 @@ Who a row belongs to (docs/server.md, Teams):
   were in when they made it;
 - team mode: a team's best submission made in the team (`Submission.team_id`, fixed when it was
   made), whoever of its members made it; a user not in a team has the row of their best
-  submission made outside any team; a user in a team has no row of their own.
+  submission made outside any team or in a dissolved one; a user in a team has no row of their
+  own. A dissolved team has no row.
 Baselines are always rows of their own.
+
+Locks: a refresh locks the user's row, then the rows of the teams they submitted in (id order),
+then the phase's row. A caller that refreshes several users locks all of them first (id order),
+then all of their teams (`server.teams.locks`).
 """
 
 from __future__ import annotations
@@ -57,7 +62,9 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
     )
     # Serialise refreshes of one user (then of a team): the unique rows must not be raced.
     # Every writer locks a user before a team, and teams in id order.
-    username = db.scalar(select(User.username).where(User.id == user_id).with_for_update())
+    username = db.scalar(
+        select(User.username).where(User.id == user_id).with_for_update(key_share=True)
+    )
     if username is None:
         return
     _refresh_user(db, phase_id=phase_id, user_id=user_id, username=username, team_mode=team_mode)
@@ -98,21 +105,31 @@ def _refresh_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mo
     own = [s for s in eligible if not s.baseline]
     if team_mode:
         in_team = db.scalar(select(TeamMember.team_id).where(TeamMember.user_id == user_id))
-        own = [] if in_team is not None else [s for s in own if s.team_id is None]
+        gone = _dissolved(db, team_ids={s.team_id for s in own if s.team_id is not None})
+        own = [] if in_team is not None else [s for s in own if s.team_id in gone | {None}]
     chosen += own[:1]
     for submission in chosen:
         key = None if submission.baseline else user_id
         db.add(_entry(db, submission, username=username, owner_key=key, team=None))
 
 
+def _dissolved(db: DB, *, team_ids: set[int]) -> set[int | None]:
+    if not team_ids:
+        return set()
+    found = db.scalars(
+        select(Team.id).where(Team.id.in_(team_ids), Team.dissolved_at.is_not(None))
+    ).all()
+    return set(found)
+
+
 def _refresh_team(db: DB, *, phase_id: int, team_id: int) -> None:
-    team = db.scalar(select(Team).where(Team.id == team_id).with_for_update())
+    team = db.scalar(select(Team).where(Team.id == team_id).with_for_update(key_share=True))
     db.execute(
         delete(LeaderboardEntry).where(
             LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.team_id == team_id
         )
     )
-    if team is None:
+    if team is None or team.dissolved_at is not None:
         return
     best = db.execute(
         select(Submission, User.username)
@@ -161,12 +178,12 @@ def refresh_member(db: DB, *, user_id: int) -> None:
 
 
 def release_team(db: DB, *, team_id: int) -> None:
-    """Before a team is deleted: its submissions become their submitters' own again and its
-    rows go; every board they were on is recomputed."""
+    """After a team is dissolved (its row kept and marked, its submissions untouched): its rows
+    go, and its submitters' rows are recomputed, where those submissions are their own now.
+    The caller holds the submitters' rows, then their teams' (the module's lock order)."""
     made = db.execute(
         select(Submission.phase_id, Submission.user_id).where(Submission.team_id == team_id)
     ).all()
-    db.execute(update(Submission).where(Submission.team_id == team_id).values(team_id=None))
     db.execute(delete(LeaderboardEntry).where(LeaderboardEntry.team_id == team_id))
     for phase_id, user_id in sorted(set(made)):
         refresh(db, phase_id=phase_id, user_id=user_id)

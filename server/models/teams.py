@@ -19,9 +19,13 @@ class Team(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(32), unique=True)
-    """The team's handle, as user names are written: its page is /teams/NAME."""
+    """The team's handle, as user names are written: its page is /teams/NAME. A dissolved
+    team's is the tombstone `~ID`, outside that grammar, so its name is free again."""
     display_name: Mapped[str] = mapped_column(String(64))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    dissolved_at: Mapped[datetime | None] = mapped_column(default=None)
+    """When its last member left. The row stays so that the submissions made in it keep their
+    `team_id` (dissolving rewrites no submission); they count as their submitters' own."""
 
 
 class TeamMember(Base):

@@ -46,7 +46,8 @@ def _team(db: DB, *, user: User, challenge: Challenge) -> Team | None:
 def _counted(user: User, team: Team | None) -> ColumnElement[bool]:
     """The submissions a quota counts: the user's own; for a team, every current member's
     (what they made before joining too) and every one made in the team (by members who left
-    too), so that neither joining nor leaving a team hands out quota."""
+    too), so that neither joining nor leaving a team hands out quota. A dissolved team is
+    nobody's: what was made in it counts for its submitters, by `user_id`."""
     if team is None:
         return Submission.user_id == user.id
     members = select(TeamMember.user_id).where(TeamMember.team_id == team.id)
@@ -84,10 +85,10 @@ def check_quota(db: DB, *, user: User, challenge: Challenge, now: datetime) -> i
     id, which the new submission records, or None."""
     # Lock the user, then their team: two submissions of one user, or of two members of one
     # team, cannot both pass the quota. Team changes take the same locks in the same order.
-    db.execute(select(User.id).where(User.id == user.id).with_for_update())
+    db.execute(select(User.id).where(User.id == user.id).with_for_update(key_share=True))
     team_id = db.scalar(select(TeamMember.team_id).where(TeamMember.user_id == user.id))
     if team_id is not None and challenge.team_mode:
-        db.execute(select(Team.id).where(Team.id == team_id).with_for_update())
+        db.execute(select(Team.id).where(Team.id == team_id).with_for_update(key_share=True))
     use = quota_use(db, user=user, challenge=challenge, now=now)
     whose = f"team {use.team}'s" if use.team else "your"
     if use.resets_at is not None:

@@ -133,3 +133,23 @@ def test_the_terminal_board_keeps_the_suites_order_and_marks_ties() -> None:
     assert header.index("nominal") < header.index("obs_noise")
     assert "=2" in text
     assert "baseline" in text
+
+
+def test_a_team_row_names_the_team_beside_its_display_name_and_who_submitted() -> None:
+    from rich.console import Console
+
+    row = {
+        "rank": 1,
+        "username": "ada",
+        "team": "grasp-lab",
+        "team_display_name": "alice",  # anyone may pick a display name: the name tells
+        "submission_id": 1,
+        "score": 0.5,
+        "tasks": {"PickCube-v1": {"success_rate": 0.5}},
+        "conditions": {"nominal": 0.5},
+    }
+    board = {"tasks": ["PickCube-v1"], "conditions": ["nominal"], "items": [row], "total": 1}
+    board |= {"challenge": "core", "phase": "dev", "page": 1, "per_page": 50}
+    console = Console(width=200, record=True)
+    console.print(render.leaderboard_table(board))
+    assert "alice (grasp-lab) by ada" in console.export_text()

@@ -65,7 +65,8 @@ def test_team_errors_exit_with_their_codes(live: LiveServer, tmp_path: Path) -> 
     assert r.exit_code == 0, r.output
     r = carol.run("team", "invite", "nobody")
     assert r.exit_code == ExitCode.NOT_FOUND, r.output
-    r = carol.run("team", "accept", "999999")
-    assert r.exit_code in (ExitCode.NOT_FOUND, ExitCode.CONFLICT), r.output
+    r = carol.run("team", "accept", "999999")  # in a team: told so before any look-up
+    assert r.exit_code == ExitCode.CONFLICT, r.output
+    assert "you are in team 'carols'" in r.stderr
     r = carol.run("team", "show", "no-such-team")
     assert r.exit_code == ExitCode.NOT_FOUND, r.output

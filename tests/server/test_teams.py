@@ -6,9 +6,11 @@ from __future__ import annotations
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
-from server.models import Team, TeamInvitation
+from server.kit.errors import NotFound
+from server.models import Team, TeamInvitation, User
+from server.teams import service as teams
 from tests.factories import make_user, token_for
 
 API = "/api/v1"
@@ -69,9 +71,10 @@ def test_create_invite_accept_shows_both_members(
         ("bob", False),
     ]
     assert client.get(f"{API}/team", headers=auth["bob"]).json()["team"]["name"] == "grasp-lab"
-    # Single use: the invitation is gone.
+    # Single use: the invitation is gone; bob, in the team now, is told so first.
     again = client.post(f"{API}/team/invitations/{invitation_id}/accept", headers=auth["bob"])
-    assert again.status_code in (404, 409)
+    assert again.status_code == 409
+    assert "you are in team 'grasp-lab'" in again.json()["error"]["message"]
 
 
 def test_a_user_is_in_one_team_at_a_time(
@@ -108,6 +111,13 @@ def test_team_names_follow_the_user_name_grammar_and_are_unique(
     )
     assert r.status_code == 422
     assert "display_name" in r.json()["error"]["fields"]
+    # A team must not pass for the service or its staff, as a user must not.
+    for reserved in ("admin", "staff", "official", "manieval", "team"):
+        r = client.post(
+            f"{API}/teams", json={"name": reserved, "display_name": "X"}, headers=auth["alice"]
+        )
+        assert r.status_code == 422, reserved
+        assert "reserved" in r.json()["error"]["fields"]["name"]
     _create(client, auth["alice"], "taken")
     r = client.post(
         f"{API}/teams", json={"name": "taken", "display_name": "X"}, headers=auth["bob"]
@@ -220,12 +230,49 @@ def test_the_admin_leaving_hands_the_role_on_and_the_last_member_dissolves(
     client.post(f"{API}/team/leave", headers=auth["bob"])
     client.post(f"{API}/team/leave", headers=auth["carol"])
     assert client.get(f"{API}/teams/grasp-lab").status_code == 404
-    assert db.scalar(select(Team).where(Team.name == "grasp-lab")) is None
+    # The dissolved team's row stays (its submissions keep pointing at it), its name freed.
+    (gone,) = db.scalars(select(Team).where(Team.display_name == "Grasp Lab")).all()
+    assert (gone.name, gone.dissolved_at is not None) == (f"~{gone.id}", True)
     r = client.post(f"{API}/team/leave", headers=auth["carol"])
     assert r.status_code == 409
+    _create(client, auth["bob"], "grasp-lab")
+    assert client.get(f"{API}/teams/grasp-lab").json()["members"][0]["username"] == "bob"
+
+
+def test_a_site_admin_sees_invitations_but_only_the_team_admin_acts(
+    client: TestClient, auth: dict[str, dict[str, str]], db: Session
+) -> None:
+    make_user(db, "root-admin", admin=True)
+    site_admin = token_for(client, "root-admin")
+    _create(client, auth["alice"])
+    invitation_id = _invite(client, auth["alice"], "bob")
+    shown = client.get(f"{API}/teams/grasp-lab", headers=site_admin).json()["invitations"]
+    assert [i["username"] for i in shown] == ["bob"]
+    r = client.delete(f"{API}/teams/grasp-lab/invitations/{invitation_id}", headers=site_admin)
+    assert r.status_code == 403
 
 
 def test_team_endpoints_need_a_login(client: TestClient) -> None:
     assert client.get(f"{API}/team").status_code == 401
     assert client.post(f"{API}/teams", json={"name": "abc", "display_name": "A"}).status_code == 401
     assert client.get(f"{API}/teams/nobody-here").status_code == 404
+
+
+def test_acting_on_a_team_dissolved_meanwhile_is_a_404_naming_it(
+    sessions: sessionmaker[Session],
+) -> None:
+    with sessions() as first:
+        alice, bob = make_user(first, "alice"), make_user(first, "bob")
+        team = teams.create_team(first, user=alice, name="grasp-lab", display_name="Grasp Lab")
+        invitation_id = teams.invite(first, admin=alice, team=team, username="bob").id
+        first.flush()
+        with sessions() as second:  # another request, as a second tab would send it
+            leaving = second.get(User, alice.id)
+            assert leaving is not None
+            gone = teams.leave(second, user=leaving)
+            second.commit()
+        assert gone is None
+        with pytest.raises(NotFound, match="no team 'grasp-lab': it was dissolved"):
+            teams.invite(first, admin=alice, team=team, username="bob")
+        with pytest.raises(NotFound, match=f"no invitation {invitation_id} for you"):
+            teams.accept(first, user=bob, invitation_id=invitation_id)

@@ -60,7 +60,11 @@ def test_team_mode_shows_one_row_per_team_with_its_best(client: TestClient, db: 
     assert team_row["team_display_name"] == "Grasp Lab"
 
     html = client.get("/challenges/server-tiny/leaderboard?phase=dev").text
-    assert '<a class="team-name" href="/teams/grasp-lab">Grasp Lab</a>' in html
+    # The handle beside the display name: a display name alone could pass for another's.
+    assert (
+        '<a class="team-name" href="/teams/grasp-lab">Grasp Lab</a> '
+        '<span class="muted team-handle">(grasp-lab)</span>'
+    ) in html
     assert "by <a href=" in html
     text = client.get(BOARD + "&format=csv").text
     header, *rows = csv.reader(io.StringIO(text))
@@ -84,6 +88,42 @@ def test_membership_changes_recompute_the_rows(client: TestClient, db: Session) 
     teams.leave(db, user=alice)  # the last member: the team is dissolved
     db.commit()
     assert _rows(client) == [(None, "bob", 0.5)]
+
+
+def test_removing_a_member_recomputes_the_rows(client: TestClient, db: Session) -> None:
+    challenge = make_challenge(db, quota_per_day=20, quota_concurrent=20, teams=True)
+    alice, bob = make_user(db, "alice"), make_user(db, "bob")
+    _done(db, bob, challenge, [True, False])  # bob's own
+    _join(db, alice, bob)
+    _done(db, bob, challenge, [True, True])  # the team's
+    assert _rows(client) == [("grasp-lab", "bob", 1.0)]
+    team = teams.get_team(db, name="grasp-lab")
+    teams.remove(db, admin=alice, team=team, username="bob")
+    db.commit()
+    assert _rows(client) == [("grasp-lab", "bob", 1.0), (None, "bob", 0.5)]
+
+
+def test_a_team_dissolving_while_a_former_member_is_in_another(
+    client: TestClient, db: Session
+) -> None:
+    challenge = make_challenge(db, quota_per_day=20, quota_concurrent=20, teams=True)
+    alice, bob, carol = (make_user(db, n) for n in ("alice", "bob", "carol"))
+    _join(db, alice, bob)
+    _done(db, bob, challenge, [True, True])  # made in grasp-lab
+    teams.leave(db, user=bob)
+    other = teams.create_team(db, user=carol, name="pick-lab", display_name="Pick Lab")
+    invitation = teams.invite(db, admin=carol, team=other, username="bob")
+    teams.accept(db, user=bob, invitation_id=invitation.id)
+    db.commit()
+    _done(db, bob, challenge, [True, False])  # made in pick-lab
+    assert _rows(client) == [("grasp-lab", "bob", 1.0), ("pick-lab", "bob", 0.5)]
+    assert teams.leave(db, user=alice) is None  # the last member: grasp-lab dissolves
+    db.commit()
+    # Its submission is bob's own now, but bob is in pick-lab: no row of his own.
+    assert _rows(client) == [("pick-lab", "bob", 0.5)]
+    teams.leave(db, user=bob)
+    db.commit()
+    assert _rows(client) == [(None, "bob", 1.0), ("pick-lab", "bob", 0.5)]
 
 
 def test_per_user_mode_is_unaffected_and_switching_rebuilds(

@@ -81,3 +81,58 @@ def test_team_pages_need_a_login_and_a_csrf_token(client: TestClient, db: Sessio
     assert r.status_code == 403
     assert anonymous.get("/teams/nobody-here").status_code == 404
     assert 'href="/team"' in alice.get("/").text  # the navigation
+
+
+def _team_of_two(client: TestClient, db: Session) -> tuple[TestClient, TestClient]:
+    """alice's team grasp-lab with bob in it and carol invited; their browsers."""
+    for name in ("alice", "bob", "carol"):
+        make_user(db, name)
+    alice, bob = browser(client, "alice"), browser(client, "bob")
+    _post(alice, "/team", "/team", name="grasp-lab", display_name="Grasp Lab")
+    _post(alice, "/teams/grasp-lab/invitations", "/teams/grasp-lab", username="bob")
+    mine = bob.get("/team").text
+    found = re.search(r'action="/team/invitations/(\d+)/accept"', mine)
+    assert found, mine
+    bob.post(f"/team/invitations/{found.group(1)}/accept", data={"csrf_token": csrf_of(mine)})
+    _post(alice, "/teams/grasp-lab/invitations", "/teams/grasp-lab", username="carol")
+    return alice, bob
+
+
+def test_creating_a_team_from_a_stale_tab_says_why_not(client: TestClient, db: Session) -> None:
+    alice, _bob = _team_of_two(client, db)
+    # The create form was open before alice made her team; she posts it now.
+    r = _post(alice, "/team", "/account", name="second", display_name="Second")
+    assert r.status_code == 200
+    assert "leave it first (a user is in one team at a time)" in r.text
+
+
+def test_a_member_posting_the_admin_forms_is_told_only_the_admin_can(
+    client: TestClient, db: Session
+) -> None:
+    alice, bob = _team_of_two(client, db)
+    found = re.search(
+        r'/teams/grasp-lab/invitations/(\d+)/revoke"', alice.get("/teams/grasp-lab").text
+    )
+    assert found
+    for url in (
+        f"/teams/grasp-lab/invitations/{found.group(1)}/revoke",
+        "/teams/grasp-lab/members/alice/remove",
+    ):
+        r = _post(bob, url, "/teams/grasp-lab")
+        assert r.status_code == 200, url
+        assert "only the admin of team" in r.text, url
+    assert "Revoke" in alice.get("/teams/grasp-lab").text  # the invitation is still there
+
+
+def test_a_site_admin_sees_pending_invitations_without_the_admin_forms(
+    client: TestClient, db: Session
+) -> None:
+    _team_of_two(client, db)
+    make_user(db, "root-admin", admin=True)
+    page = browser(client, "root-admin").get("/teams/grasp-lab").text
+    assert "Pending invitations" in page
+    assert '<th scope="row">carol</th>' in page
+    assert "Invite a member" not in page
+    assert "/revoke" not in page
+    assert "/remove" not in page
+    assert "Only the team's admin can invite members or revoke an invitation." in page
