@@ -82,7 +82,16 @@ class WorkerSettings(BaseSettings):
     """The eval pods' PriorityClass (a low one lets the cluster's own pods preempt them)."""
     k8s_image_pull_secrets: Annotated[tuple[str, ...], NoDecode] = ()
     """Secrets in the evaluation namespace for pulling images, comma-separated (or JSON)."""
+    k8s_video_claim: str | None = None
+    """A ReadWriteMany PersistentVolumeClaim in ``k8s_namespace`` on the storage the server's
+    video directory is on: Jobs write episode videos there (docs/videos.md). None: Jobs
+    record no videos."""
     k8s_poll_interval: float = Field(default=5.0, gt=0, le=300)
+    """Seconds between a watcher's looks at what it knows of its Job (no API request: Jobs and
+    pods are watched), and between reads of the quotas while waiting for room."""
+    k8s_progress_interval: float = Field(default=120.0, gt=0, le=3600)
+    """Seconds between reads of a running evaluation's log for its progress (one API request
+    per shard each); the result is read once, at the end."""
     k8s_pending_timeout_s: float = Field(default=600.0, gt=0)
     """How long an evaluation's pods may stay unscheduled, pending or uncreated (a
     ResourceQuota refusing them) before the attempt ends ``error``: the cluster's fault."""

@@ -38,8 +38,8 @@ from tests.worker.test_k8s_manifest import restricted_violations
 from worker.kubernetes.manifest import build_network_policy, job_labels
 
 WORKER_MAY = {
-    ("batch", "jobs"): {"create", "get", "list", "delete"},
-    ("", "pods"): {"list"},
+    ("batch", "jobs"): {"create", "get", "list", "watch", "delete"},
+    ("", "pods"): {"list", "watch"},  # followed by watches (worker/kubernetes/informer.py)
     ("", "pods/log"): {"get"},
     ("", "events"): {"list"},
     ("", "secrets"): {"create"},  # each Job's evaluation; never read back
@@ -179,7 +179,7 @@ WIDER: dict[str, Any] = {
         resources=["pods/log", "pods/exec"]
     ),
     "patching jobs": lambda roles: roles["manieval-worker"]["rules"][0]["verbs"].append("patch"),
-    "watching jobs": lambda roles: roles["manieval-worker"]["rules"][0]["verbs"].append("watch"),
+    "watching events": lambda roles: roles["manieval-worker"]["rules"][3]["verbs"].append("watch"),
     "deleting pods": lambda roles: roles["manieval-worker"]["rules"][1]["verbs"].append("delete"),
     "reading secrets": lambda roles: roles["manieval-worker"]["rules"][4]["verbs"].append("get"),
     "another namespace": lambda roles: roles["manieval-worker"]["metadata"].update(

@@ -17,23 +17,37 @@ evicted pods are deleted (and replaced, as the Job's podFailurePolicy ignores di
 pods stay Pending with an Unschedulable condition, a ResourceQuota refuses Jobs (403 on create)
 or pods (the Job controller records a FailedCreate warning and makes no pod), and an expired
 list continuation answers `410 Gone`.
+
+Jobs and pods can be watched as on a real server (`?watch=true`): newline-delimited events
+(ADDED, MODIFIED, DELETED, BOOKMARK when `allowWatchBookmarks`, ERROR), a resourceVersion per
+object and per list, `resourceVersion` to resume from, `timeoutSeconds` ending the stream, and
+`410 Gone` (an ERROR event holding a Status, as the real server sends it inside the stream) for
+a version older than the history kept (`expire_watches`, `history_limit`). Every change to a Job
+or pod, through the methods above or by editing `jobs` and `pods` directly, becomes an event:
+the double compares the objects with what it last published (`together` publishes a block's
+changes as one, `caught_up` says whether a watcher's version has them all). `counts` tells the
+requests by kind (`watch pods`, `list jobs`, `get pods/log`, ...).
 """
 
 from __future__ import annotations
 
 import base64
+import bisect
 import copy
+import functools
 import json
 import re
 import threading
+import time
 import uuid
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from typing import Any
+from typing import Any, Concatenate, ParamSpec, TypeVar
 from urllib.parse import parse_qs, urlsplit
 
 import kubernetes_validate
@@ -58,6 +72,39 @@ _SECRETS = re.compile(r"^/api/v1/namespaces/([^/]+)/secrets$")
 _QUOTAS = re.compile(r"^/api/v1/namespaces/([^/]+)/resourcequotas$")
 _TERMINAL = ("Succeeded", "Failed")
 _EPOCH = datetime(2026, 1, 1, tzinfo=UTC)
+_KINDS = {"jobs": ("Job", "batch/v1"), "pods": ("Pod", "v1")}
+_WATCHING = ("1", "true")
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def _publishes(
+    method: Callable[Concatenate[ApiServerDouble, P], R],
+) -> Callable[Concatenate[ApiServerDouble, P], R]:
+    """After the method, what it changed is published to the watches."""
+
+    @functools.wraps(method)
+    def published(self: ApiServerDouble, *args: P.args, **kwargs: P.kwargs) -> R:
+        with self.lock:
+            answer = method(self, *args, **kwargs)
+            namespace, name = [*args, None, None][:2]
+            if isinstance(namespace, str) and isinstance(name, str):
+                self._dirty.add((namespace, name))  # the Job `name` and its pods
+            else:
+                self._scan_all = True
+            self._sync()
+            return answer
+
+    return published
+
+
+@dataclass(frozen=True)
+class WatchRequest:
+    """A watch of `store` ("jobs" or "pods") in `namespace`, to be streamed."""
+
+    store: str
+    namespace: str
+    query: dict[str, list[str]]
 
 
 def tiny_evaluation(*, seeds: Sequence[int] = (100, 101)) -> EvaluationJob:
@@ -146,16 +193,35 @@ class ApiServerDouble:
     """Plays the Job controller the moment a Job is created (namespace, name)."""
     expire_continue: bool = False
     """Continue tokens have expired: a list with one answers 410 Gone."""
+    bookmark_every: float = 1.0
+    """Seconds between BOOKMARK events on a watch that allows them."""
+    scan_every: float = 0.1
+    """Seconds between looks for changes made by editing `jobs` or `pods` directly."""
+    history_limit: int = 100_000
+    """Events kept for watches to resume from; older versions answer 410 Gone."""
     lock: threading.RLock = field(default_factory=threading.RLock)
     _clock: int = 0
+    _version: int = 1  # the cluster's history began before the test: never "0" (any)
+    _compacted: int = 0
+    _expiries: int = 0
+    _history: list[tuple[str, Json]] = field(default_factory=list)
+    _history_versions: list[int] = field(default_factory=list)
+    _published: dict[tuple[str, str, str], Json] = field(default_factory=dict)
+    _last_scan: float = 0.0
+    _closed: bool = False
+    _held: int = 0
+    _dirty: set[tuple[str, str]] = field(default_factory=set)
+    """Jobs (namespace, name) whose Job or pods a method changed: published at the next sync."""
+    _scan_all: bool = False
 
     def __post_init__(self) -> None:
+        self._changes = threading.Condition(self.lock)
         double = self
 
         class Handler(_Handler):
             server_double = double
 
-        self._server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self._server = _Server(("127.0.0.1", 0), Handler)
         self._server.daemon_threads = True
         self._thread = threading.Thread(
             target=self._server.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True
@@ -170,6 +236,9 @@ class ApiServerDouble:
         return self
 
     def __exit__(self, *_exc: object) -> None:
+        with self._changes:
+            self._closed = True
+            self._changes.notify_all()
         self._server.shutdown()
         self._server.server_close()
 
@@ -187,11 +256,13 @@ class ApiServerDouble:
         with self.lock:
             self.faults += [Fault(method, path_part, s, retry_after, apply) for s in statuses]
 
+    @_publishes
     def put_job(self, manifest: Json) -> Json:
         """Store a Job as if someone had created it earlier."""
         with self.lock:
             return self._create_job(manifest["metadata"]["namespace"], copy.deepcopy(manifest))
 
+    @_publishes
     def run(self, namespace: str, name: str, *, ready: bool = True) -> list[str]:
         """The controller creates the pods; with `ready`, the kubelet has started them. Pods
         the ResourceQuota refuses are not made: a FailedCreate warning on the Job says why."""
@@ -207,6 +278,7 @@ class ApiServerDouble:
             job["status"].update(active=count, ready=count if ready else 0, startTime=self._now())
             return pods
 
+    @_publishes
     def succeed(
         self,
         namespace: str,
@@ -234,6 +306,7 @@ class ApiServerDouble:
                 job["status"]["completedIndexes"] = f"0-{len(pods) - 1}"
             self._conclude(job, "SuccessCriteriaMet", "Complete", "CompletionsReached", "")
 
+    @_publishes
     def fail(
         self,
         namespace: str,
@@ -254,6 +327,7 @@ class ApiServerDouble:
             job["status"].update(active=0, ready=0, failed=1)
             self._conclude(job, "FailureTarget", "Failed", reason, message)
 
+    @_publishes
     def exceed_deadline(self, namespace: str, name: str) -> None:
         """activeDeadlineSeconds passed: the controller deletes the running pods (failed ones
         stay), fails the Job."""
@@ -266,6 +340,7 @@ class ApiServerDouble:
             message = "Job was active longer than specified deadline"
             self._conclude(job, "FailureTarget", "Failed", "DeadlineExceeded", message)
 
+    @_publishes
     def evict(
         self,
         namespace: str,
@@ -284,6 +359,7 @@ class ApiServerDouble:
                 return None
             return self._add_pod(self.jobs[(namespace, name)], 0, ready=False)
 
+    @_publishes
     def lose_node(self, namespace: str, name: str) -> None:
         """The pods' node stopped answering: the taint manager marks its pods DisruptionTarget
         (before deleting them) and they are reported with reason NodeLost."""
@@ -299,6 +375,7 @@ class ApiServerDouble:
                 ]
                 pod["status"]["reason"] = "NodeLost"
 
+    @_publishes
     def unschedulable(
         self,
         namespace: str,
@@ -323,6 +400,7 @@ class ApiServerDouble:
                 ]
             return names
 
+    @_publishes
     def disrupt(self, namespace: str, name: str) -> str:
         """Evict the Job's pod (DisruptionTarget); the controller makes a new one (its name)."""
         with self.lock:
@@ -343,6 +421,7 @@ class ApiServerDouble:
             pod = self._pods_of(namespace, name)[0]
             self.logs[(namespace, pod["metadata"]["name"], container)] = text
 
+    @_publishes
     def cannot_pull(
         self, namespace: str, name: str, container: str, *, reason: str = "ImagePullBackOff"
     ) -> None:
@@ -366,6 +445,7 @@ class ApiServerDouble:
                     }
                 )
 
+    @_publishes
     def policy_killed(self, namespace: str, name: str, *, reason: str = "OOMKilled") -> None:
         """The policy sidecar was killed (and restarted): its last state says how."""
         with self.lock:
@@ -377,6 +457,7 @@ class ApiServerDouble:
                             "terminated": {"exitCode": 137, "reason": reason, "finishedAt": None}
                         }
 
+    @_publishes
     def finish_deletions(self) -> None:
         """The garbage collector finishes every pending foreground deletion."""
         with self.lock:
@@ -393,6 +474,43 @@ class ApiServerDouble:
         """The bodies of every Job creation request (Secrets are in `secrets`)."""
         return [r.body for r in self.requests if r.method == "POST" and r.path.endswith("/jobs")]
 
+    @contextmanager
+    def together(self) -> Iterator[None]:
+        """What the block changes reaches the watches at once, at its end (as when a watcher
+        was slow to look between two changes)."""
+        with self.lock:
+            self._held += 1
+            try:
+                yield
+            finally:
+                self._held -= 1
+                self._sync(everything=True)
+
+    def caught_up(self, version: str | None) -> bool:
+        """Whether a watcher at `version` has seen every change so far."""
+        with self.lock:
+            self._sync(everything=True)
+            return version is not None and int(version) >= self._version
+
+    def expire_watches(self) -> None:
+        """The history is compacted: open watches end with an ERROR event (410 Gone), and
+        resuming from any version seen so far answers 410 too; a fresh list works."""
+        with self._changes:
+            self._sync(everything=True)
+            self._version += 1
+            self._compacted = self._version
+            self._history.clear()
+            self._history_versions.clear()
+            self._expiries += 1
+            self._changes.notify_all()
+
+    def counts(self, since: int = 0) -> Counter[str]:
+        """Requests from number `since` on, by verb and resource (`watch pods`, `get jobs`,
+        `list events`, `get pods/log`, `create secrets`, ...)."""
+        with self.lock:
+            recorded = list(self.requests[since:])
+        return Counter(_kind_of(r) for r in recorded)
+
     # The API.
 
     def handle(self, method: str, url: str, body: Any) -> tuple[tuple[int, Any], int | None]:
@@ -404,10 +522,140 @@ class ApiServerDouble:
             fault = self._take_fault(method, parts.path)
             if fault is not None and not fault.apply:
                 return _error(fault.status), fault.retry_after
+            watching = query.get("watch", [""])[0] in _WATCHING
+            if (
+                method == "GET"
+                and watching
+                and (match := _JOBS.match(parts.path) or _PODS.match(parts.path))
+            ):
+                store = "jobs" if "/jobs" in parts.path else "pods"
+                return (200, WatchRequest(store, match.group(1), query)), None
+            if method == "GET":
+                self._sync()  # a list's resourceVersion covers everything changed before it
             status, payload = self._route(method, parts.path, query, body)
+            if method != "GET" and (match := _JOBS.match(parts.path)):
+                namespace, name = match.groups()
+                name = name or ((body or {}).get("metadata") or {}).get("name", "")
+                self._dirty.add((namespace, name))
+                self._sync()
             if fault is not None:
                 return _error(fault.status), fault.retry_after
             return (status, payload), None
+
+    def stream(self, watch: WatchRequest, send: Callable[[Json], None]) -> None:
+        """Serve one watch: `send` each event until `timeoutSeconds`, a 410, or shutdown."""
+        query = watch.query
+        selector = query.get("labelSelector", [""])[0]
+        since = query.get("resourceVersion", [""])[0]
+        bookmarks = query.get("allowWatchBookmarks", [""])[0] in _WATCHING
+        deadline = time.monotonic() + float(query.get("timeoutSeconds", ["1800"])[0])
+        kind, api_version = _KINDS[watch.store]
+
+        def ours(event: Json) -> bool:
+            meta = event["object"]["metadata"]
+            return meta.get("namespace") == watch.namespace and _selects(
+                selector, meta.get("labels") or {}
+            )
+
+        with self._changes:
+            self._sync()
+            generation, last = self._expiries, self._version
+            pending: list[Json] = []
+            if since in ("", "0"):  # no version: the current objects first, as ADDED
+                store = self.jobs if watch.store == "jobs" else self.pods
+                added = [{"type": "ADDED", "object": copy.deepcopy(o)} for o in store.values()]
+                pending = [e for e in added if ours(e)]
+            elif int(since) < self._compacted:
+                pending, last = [_gone(since)], -1
+            else:
+                last = int(since)
+        next_bookmark = time.monotonic() + self.bookmark_every
+        while True:
+            for event in pending:
+                send(event)
+            if last < 0:
+                return  # after a 410 the server ends the watch
+            now = time.monotonic()
+            if now >= deadline or self._closed:
+                return
+            if bookmarks and now >= next_bookmark:
+                meta = {"resourceVersion": str(last)}
+                send(
+                    {
+                        "type": "BOOKMARK",
+                        "object": {"kind": kind, "apiVersion": api_version, "metadata": meta},
+                    }
+                )
+                next_bookmark = now + self.bookmark_every
+            with self._changes:
+                pending, last = self._events_after(watch.store, last, generation, ours)
+                if not pending and last >= 0:
+                    wait = min(self.scan_every, deadline - now, next_bookmark - now)
+                    self._changes.wait(max(0.001, wait))
+
+    def _events_after(
+        self, store: str, last: int, generation: int, ours: Callable[[Json], bool]
+    ) -> tuple[list[Json], int]:
+        """The events of `store` after version `last` (with the version now), or a 410."""
+        if time.monotonic() - self._last_scan >= self.scan_every:
+            self._sync(everything=True)
+        if self._expiries != generation or last < self._compacted:
+            return [_gone(str(last))], -1
+        start = bisect.bisect_right(self._history_versions, last)
+        events = [e for s, e in self._history[start:] if s == store and ours(e)]
+        return events, self._version
+
+    def _sync(self, *, everything: bool = False) -> None:
+        """Publish what changed since the last time, as events: the Jobs (and their pods) the
+        methods and requests marked, or with `everything` (and every `scan_every` seconds)
+        every object, for what tests edit directly."""
+        if self._held:
+            return
+        keys: set[tuple[str, str, str]] = set()
+        if everything or self._scan_all:
+            self._last_scan = time.monotonic()
+            keys = {("jobs", *k) for k in self.jobs} | {("pods", *k) for k in self.pods}
+            keys |= set(self._published)
+        for namespace, job in self._dirty:
+            keys.add(("jobs", namespace, job))
+            keys |= {("pods", *k) for k, pod in list(self.pods.items()) if _job_of(pod) == job}
+            keys |= {
+                k for k, obj in self._published.items() if k[0] == "pods" and _job_of(obj) == job
+            }
+        self._dirty.clear()
+        self._scan_all = False
+        changed = [self._publish(*key) for key in sorted(keys)]
+        if any(changed):
+            self._changes.notify_all()
+
+    def _publish(self, store: str, namespace: str, name: str) -> bool:
+        """Record an event if the object differs from what was last published."""
+        obj = (self.jobs if store == "jobs" else self.pods).get((namespace, name))
+        old = self._published.get((store, namespace, name))
+        if obj is None:
+            if old is None:
+                return False
+            last = copy.deepcopy(self._published.pop((store, namespace, name)))
+            self._version += 1
+            last["metadata"]["resourceVersion"] = str(self._version)
+            self._record(store, "DELETED", last)
+            return True
+        if old is not None and old == obj:
+            return False
+        self._version += 1
+        obj.setdefault("metadata", {})["resourceVersion"] = str(self._version)
+        snapshot = copy.deepcopy(obj)
+        self._published[(store, namespace, name)] = snapshot
+        self._record(store, "ADDED" if old is None else "MODIFIED", snapshot)
+        return True
+
+    def _record(self, store: str, kind: str, obj: Json) -> None:
+        self._history.append((store, {"type": kind, "object": obj}))
+        self._history_versions.append(self._version)
+        if len(self._history) > self.history_limit:
+            cut = len(self._history) // 2
+            self._compacted = self._history_versions[cut - 1]
+            del self._history[:cut], self._history_versions[:cut]
 
     def _route(
         self, method: str, path: str, query: dict[str, list[str]], body: Any
@@ -544,7 +792,6 @@ class ApiServerDouble:
         meta.update(
             namespace=namespace,
             uid=uid,
-            resourceVersion=str(len(self.requests)),
             creationTimestamp=self._now(),
             generation=1,
         )
@@ -607,7 +854,7 @@ class ApiServerDouble:
         start = int(query.get("continue", ["0"])[0])
         limit = int(query.get("limit", [str(len(matching) or 1)])[0])
         page = matching[start : start + limit]
-        meta: Json = {"resourceVersion": str(len(self.requests))}
+        meta: Json = {"resourceVersion": str(self._version)}
         if start + limit < len(matching):
             meta["continue"] = str(start + limit)
         return {"kind": kind, "apiVersion": api_version, "metadata": meta, "items": page}
@@ -727,6 +974,10 @@ class ApiServerDouble:
         ]
 
 
+class _Server(ThreadingHTTPServer):
+    request_queue_size = 1024  # many clients connecting at once wait, as on a real server
+
+
 class _Text(str):
     """A plain-text answer (pod logs), cut at `limit` bytes (limitBytes) when set."""
 
@@ -744,6 +995,9 @@ class _Handler(BaseHTTPRequestHandler):
         raw = self.rfile.read(length) if length else b""
         body = json.loads(raw) if raw else None
         (status, payload), retry_after = self.server_double.handle(self.command, self.path, body)
+        if isinstance(payload, WatchRequest):
+            self._stream(payload)
+            return
         if isinstance(payload, _Text):  # lone surrogates stand for bytes that are not UTF-8
             data, kind = payload.encode("utf-8", "surrogateescape"), "text/plain; charset=utf-8"
             data = data[: payload.limit] if payload.limit is not None else data
@@ -756,6 +1010,28 @@ class _Handler(BaseHTTPRequestHandler):
             self.send_header("Retry-After", str(retry_after))
         self.end_headers()
         self.wfile.write(data)
+
+    def _stream(self, watch: WatchRequest) -> None:
+        """A watch: events as JSON lines in HTTP/1.1 chunks (as the real server sends them;
+        a client reads each chunk as it comes), the connection closed at the end."""
+        self.protocol_version = "HTTP/1.1"
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Transfer-Encoding", "chunked")
+        self.send_header("Connection", "close")
+        self.end_headers()
+
+        def send(event: Json) -> None:
+            line = json.dumps(event).encode() + b"\n"
+            self.wfile.write(b"%x\r\n%s\r\n" % (len(line), line))
+            self.wfile.flush()
+
+        try:
+            self.server_double.stream(watch, send)
+            self.wfile.write(b"0\r\n\r\n")
+        except (BrokenPipeError, ConnectionResetError):
+            pass  # the client went away (it stopped watching)
+        self.close_connection = True
 
     do_GET = do_POST = do_DELETE = _serve
 
@@ -777,8 +1053,43 @@ def _status(code: int, reason: str, message: str) -> tuple[int, Json]:
     }
 
 
+def _job_of(pod: Json) -> str | None:
+    """The name of the Job a pod belongs to (the controller's label)."""
+    return ((pod.get("metadata") or {}).get("labels") or {}).get("job-name")
+
+
+def _gone(version: str) -> Json:
+    """The ERROR event a real API server sends when a watch's version was compacted away."""
+    message = f"too old resource version: {version}"
+    return {"type": "ERROR", "object": _status(410, "Expired", message)[1]}
+
+
+def _kind_of(request: Recorded) -> str:
+    """`verb resource` of a recorded request, as RBAC would name it."""
+    parts = request.path.rstrip("/").split("/")
+    resource = parts[-1]
+    if resource == "log":
+        return "get pods/log"
+    collection = resource in ("jobs", "pods", "events", "secrets", "resourcequotas")
+    if not collection:
+        resource = parts[-2]
+    if request.method == "POST":
+        return f"create {resource}"
+    if request.method == "DELETE":
+        return f"delete {resource}"
+    if not collection:
+        return f"get {resource}"
+    watching = request.query.get("watch", [""])[0] in _WATCHING
+    return f"{'watch' if watching else 'list'} {resource}"
+
+
 def _error(code: int) -> tuple[int, Json]:
-    reasons = {429: "TooManyRequests", 500: "InternalError", 503: "ServiceUnavailable"}
+    reasons = {
+        410: "Expired",
+        429: "TooManyRequests",
+        500: "InternalError",
+        503: "ServiceUnavailable",
+    }
     return _status(code, reasons.get(code, "Failure"), f"injected fault {code}")
 
 

@@ -45,7 +45,8 @@ from tests.worker.k8s_double import (
     running_apiserver,
 )
 from tests.workers import worker_settings
-from worker.kubernetes.client import KubernetesExecutor
+from worker.kubernetes import watch as watch_module
+from worker.kubernetes.informer import running_watch
 from worker.kubernetes.manifest import build_job, job_name
 from worker.kubernetes.spec import job_spec
 from worker.kubernetes.watch import resume_watch, run_as_job
@@ -73,6 +74,7 @@ def k8s_worker(
         "k8s_namespace": NAMESPACE,
         "evaluator_image": EVALUATOR_IMAGE,
         "k8s_poll_interval": 0.05,
+        "k8s_progress_interval": 0.05,
     }
     return worker_settings(settings, **(values | overrides))
 
@@ -527,7 +529,7 @@ def test_a_bug_while_watching_still_ends_the_attempt_and_removes_the_job(
     def broken(*_args: object) -> None:
         raise RuntimeError("unexpected")
 
-    monkeypatch.setattr(KubernetesExecutor, "pods", broken)
+    monkeypatch.setattr(watch_module, "pod_view", broken)
     name = job_name(queued.id, 1)
     run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     assert run.wait() == State.ERROR
@@ -617,22 +619,31 @@ def test_an_eviction_that_makes_the_job_run_out_of_time_is_not_the_policys_fault
     name = job_name(queued.id, 1)
     run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     apiserver.run(NAMESPACE, name)
-    apiserver.disrupt(NAMESPACE, name)  # the replacement pod starts late...
-    apiserver.exceed_deadline(NAMESPACE, name)  # ...and the Job's clock ran on
+    with apiserver.together():  # seen at once: a disruption seen alone ends the attempt
+        apiserver.disrupt(NAMESPACE, name)  # the replacement pod starts late...
+        apiserver.exceed_deadline(NAMESPACE, name)  # ...and the Job's clock ran on
     assert "evicted" in assert_cluster_error(committed_sessions, queued.id, run.wait())
 
 
-def pod_looks(apiserver: ApiServerDouble) -> int:
-    """How many times the pods have been listed (each of the watcher's looks lists them)."""
-    with apiserver.lock:
-        return sum(1 for r in apiserver.requests if r.method == "GET" and r.path.endswith("/pods"))
+def looked_twice(
+    apiserver: ApiServerDouble,
+    wsettings: WorkerSettings,
+    sessions: sessionmaker[Session],
+    sid: int,
+) -> None:
+    """Wait until the watcher has seen what the double holds now: the process's watch has
+    every change, and the watcher has beaten twice since (it looks before it beats)."""
 
+    def caught_up() -> bool:
+        watch = running_watch(wsettings)
+        return watch is not None and all(
+            apiserver.caught_up(informer.resource_version) for informer in (watch.jobs, watch.pods)
+        )
 
-def looked_twice(apiserver: ApiServerDouble) -> None:
-    """Wait until the watcher has seen what the double holds now: a look that began after this
-    call, so one whose answer was read (the watcher looks in sequence)."""
-    before = pod_looks(apiserver)
-    until(lambda: pod_looks(apiserver) >= before + 2, "the watcher's looks")
+    until(caught_up, "the watch to see every change")
+    for _ in range(2):
+        before = submission_of(sessions, sid).heartbeat_at
+        until(lambda b=before: submission_of(sessions, sid).heartbeat_at != b, "a heartbeat")
 
 
 def test_a_job_the_quota_refuses_ends_error_at_once_with_the_clusters_reason(
@@ -723,7 +734,7 @@ def test_a_pod_pending_within_the_timeout_is_waited_for(
     name = job_name(queued.id, 1)
     run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     apiserver.unschedulable(NAMESPACE, name)  # the autoscaler adds a node in time...
-    looked_twice(apiserver)
+    looked_twice(apiserver, wsettings, committed_sessions, queued.id)
     assert run.submission(queued.id).state == State.RUNNING
     apiserver.exceed_deadline(NAMESPACE, name)  # ...or not: then the deadline decides
     assert run.wait() == State.TIMED_OUT
@@ -754,7 +765,7 @@ def test_a_pod_the_cluster_evicts_or_loses_ends_error_at_once_with_its_reason(
     name = job_name(queued.id, 1)
     run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     apiserver.run(NAMESPACE, name)
-    looked_twice(apiserver)
+    looked_twice(apiserver, wsettings, committed_sessions, queued.id)
     disrupt(apiserver, name)  # ours: no quota used, run again, long before the deadline
     reason = assert_cluster_error(committed_sessions, queued.id, run.wait())
     assert reason.startswith("the cluster stopped the evaluation: pod eval-"), reason
@@ -923,8 +934,9 @@ def test_a_cancel_stops_the_job_between_looks(
     apiserver: ApiServerDouble,
     queued: Submission,
 ) -> None:
-    """Looks at the cluster are minutes apart here, yet the cancel deletes the Job at once:
-    between looks the watcher asks the server every second whether the attempt still runs."""
+    """Nothing changes in the cluster and the watcher's own looks are minutes apart here, yet
+    the cancel deletes the Job at once: it asks the server every second whether the attempt
+    still runs."""
     slow = k8s_worker(settings, apiserver, k8s_poll_interval=300)
     name = job_name(queued.id, 1)
     run = start(api, slow, committed_sessions, apiserver, queued.id)
@@ -932,7 +944,9 @@ def test_a_cancel_stops_the_job_between_looks(
     cancel_now(committed_sessions, queued.id)
     assert run.wait() == State.CANCELLED  # joined within 120 s: long before the next look
     assert (name, "Foreground") in apiserver.deletions
-    assert not any(r.path.endswith("/pods") for r in apiserver.requests)  # no look was made
+    made = apiserver.counts()
+    assert made["get pods/log"] == 0  # no progress read, no result read
+    assert made["list pods"] == 1  # the watch's first list: no look at the pods of its own
 
 
 def test_a_job_whose_pods_the_quota_refuses_after_all_is_made_again_when_there_is_room(
@@ -981,3 +995,90 @@ def test_a_job_whose_pods_the_quota_refuses_after_all_is_made_again_when_there_i
     assert run.wait() == State.SUCCEEDED
     submission = submission_of(committed_sessions, queued.id)
     assert (submission.state, submission.attempt) == (State.SUCCEEDED, 1)  # not a re-run
+
+
+def result_of(sessions: sessionmaker[Session], settings: Settings, sid: int) -> str:
+    """A complete result document for the attempt, as its evaluator prints it."""
+    plan = plan_of(sessions, settings, sid)
+    return printed(build_result(plan, "image", [ShardOutcome()], started=STARTED))
+
+
+def test_a_running_job_costs_no_request_between_changes_and_its_logs_are_read_at_the_end(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    quiet = k8s_worker(settings, apiserver, k8s_progress_interval=3600)
+    sid, name = queued.id, job_name(queued.id, 1)
+    run = start(api, quiet, committed_sessions, apiserver, sid)
+    apiserver.run(NAMESPACE, name)
+    looked_twice(apiserver, quiet, committed_sessions, sid)
+    before = len(apiserver.requests)
+    for _ in range(3):  # seconds of a running Job: heartbeats to the server, none to the cluster
+        looked_twice(apiserver, quiet, committed_sessions, sid)
+    assert set(apiserver.counts(before)) <= {"watch jobs", "watch pods"}
+    apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, sid)])
+    assert run.wait() == State.SUCCEEDED
+    reads = [r for r in apiserver.requests if r.path.endswith("/log")]
+    assert [r.query["container"] for r in reads] == [["evaluator"], ["policy"]]
+
+
+def test_a_410_while_a_job_runs_lists_again_and_the_job_is_followed_to_its_end(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    sid, name = queued.id, job_name(queued.id, 1)
+    run = start(api, wsettings, committed_sessions, apiserver, sid)
+    apiserver.run(NAMESPACE, name)
+    looked_twice(apiserver, wsettings, committed_sessions, sid)
+    lists = apiserver.counts()["list jobs"]
+    with apiserver.together():  # the history is compacted past the watch, and the Job ends
+        apiserver.expire_watches()
+        apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, sid)])
+    assert run.wait() == State.SUCCEEDED
+    assert apiserver.counts()["list jobs"] > lists  # listed again: the 410's remedy
+
+
+def test_a_restarted_worker_adopts_the_running_job_and_follows_it_to_its_end(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    sid, name = queued.id, job_name(queued.id, 1)
+    handed = api.claim(wsettings.worker_name)
+    assert handed is not None
+    killed = threading.Event()
+    first = threading.Thread(
+        target=run_as_job, args=(api, wsettings, handed), kwargs={"stop": killed}
+    )
+    first.start()
+    until(lambda: (NAMESPACE, name) in apiserver.jobs, "the Job")
+    until(lambda: running_watch(wsettings) is not None, "the worker's watch")
+    killed.set()  # the worker process goes, and its watch with it
+    first.join(timeout=30)
+    assert not first.is_alive()
+    assert running_watch(wsettings) is None
+    apiserver.run(NAMESPACE, name)
+    apiserver.write_log(NAMESPACE, name, "evaluator", "manieval: run 0 episode 0: success\n")
+    lists = apiserver.counts()["list jobs"]
+
+    outcome: list[State | None] = []
+    second = threading.Thread(target=lambda: outcome.append(resume_watch(api, wsettings, sid, 1)))
+    second.start()
+    until(
+        lambda: (submission_of(committed_sessions, sid).progress or {}).get("done") == 1, "progress"
+    )
+    assert apiserver.counts()["list jobs"] == lists + 1  # the new watch's own first list
+    apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, sid)])
+    second.join(timeout=60)
+    assert outcome == [State.SUCCEEDED]
+    assert [d for d in apiserver.deletions if d[0] == name] == [(name, "Foreground")]

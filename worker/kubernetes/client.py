@@ -114,6 +114,14 @@ class KubernetesExecutor:
         self._batch = BatchV1Api(self.api)
         self._core = CoreV1Api(self.api)
 
+    @property
+    def batch(self) -> BatchV1Api:
+        return self._batch
+
+    @property
+    def core(self) -> CoreV1Api:
+        return self._core
+
     def close(self) -> None:
         """Release the client's connections."""
         self.api.close()  # type: ignore[no-untyped-call]
@@ -189,19 +197,29 @@ class KubernetesExecutor:
         spec = job.spec
         indexed = spec is not None and spec.completion_mode == "Indexed"
         shards = (spec.completions or 1) if spec is not None and indexed else 1
-        selector = ",".join(f"{k}={v}" for k, v in job_labels(submission_id, attempt).items())
-        pods = self._call(self._core.list_namespaced_pod, self.namespace, label_selector=selector)
-        chosen = pods_by_index(pods.items)
+        pods = self.job_pods(submission_id, attempt)
+        return self.logs(pods, shards, container=container, tail_lines=tail_lines)
+
+    def logs(
+        self, pods: list[V1Pod], shards: int, *, container: str = EVALUATOR, tail_lines: int = 0
+    ) -> list[str]:
+        """One container's log per shard index of the Job whose `pods` these are (one request
+        per shard; "" where no pod is left or its container has not started)."""
+        chosen = pods_by_index(pods)
         return [
             self._log(chosen[i], container, tail_lines) if i in chosen else ""
             for i in range(shards)
         ]
 
-    def pods(self, submission_id: int, attempt: int) -> PodView:
-        """Look into the attempt's pods: a container that cannot start, how the policy ended."""
+    def job_pods(self, submission_id: int, attempt: int) -> list[V1Pod]:
+        """The attempt's pods, listed now by its labels."""
         selector = ",".join(f"{k}={v}" for k, v in job_labels(submission_id, attempt).items())
         pods = self._call(self._core.list_namespaced_pod, self.namespace, label_selector=selector)
-        return pod_view(pods.items)
+        return list(pods.items)
+
+    def pods(self, submission_id: int, attempt: int) -> PodView:
+        """Look into the attempt's pods: a container that cannot start, how the policy ended."""
+        return pod_view(self.job_pods(submission_id, attempt))
 
     def events(self, submission_id: int, attempt: int, *, uid: str = "") -> list[str]:
         """The cluster's warnings about the attempt's Job (a pod the quota refused, say),

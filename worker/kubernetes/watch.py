@@ -1,18 +1,21 @@
-"""Run one attempt as a Kubernetes Job and watch it to a final state.
+"""Run one attempt as a Kubernetes Job and follow it to a final state.
 
 The worker builds the Job (`worker.kubernetes.manifest.build_job`) and waits, beating, until
 the namespace's ResourceQuotas have room for all of it (`worker.kubernetes.quota`), so workers
 that outnumber the quota (a rollout) never create Jobs the quota would starve. It creates the
-Job (adopting it on 409), then looks every `k8s_poll_interval` seconds: the Job's conditions
-decide the end, the pods say when an image cannot be pulled (no point waiting for the deadline)
-and when the cluster, not the policy, stopped the evaluation: a pod evicted, preempted or lost
-with its node (deleted or not) ends the attempt at once, and pods unscheduled, pending or never
-created end it after `k8s_pending_timeout_s`, each as `error` with the cluster's reason and
-cause (the server then runs it again, once; no quota is used), never `timed_out` at the
-deadline. The evaluator's log gives the progress. Between looks the worker asks the server
-every second whether the attempt still runs: a cancel deletes the Job at once, and the
-evaluator, on SIGTERM, stops. The result is read from the evaluator's log by this process:
-nothing in the pod can write one.
+Job (adopting it on 409), then follows it through the process's watch of the cluster
+(`worker.kubernetes.informer`: one list+watch of Jobs and one of pods for every attempt the
+process follows, so no request per Job and look). It looks whenever the Job or its pods change,
+and every `k8s_poll_interval` seconds for its clocks: the Job's conditions decide the end, the
+pods say when an image cannot be pulled (no point waiting for the deadline) and when the
+cluster, not the policy, stopped the evaluation: a pod evicted, preempted or lost with its node
+(deleted or not) ends the attempt at once, and pods unscheduled, pending or never created end it
+after `k8s_pending_timeout_s`, each as `error` with the cluster's reason and cause (the server
+then runs it again, once; no quota is used), never `timed_out` at the deadline. Progress is the
+evaluator's log, read every `k8s_progress_interval` seconds while it runs (the only request a
+running Job costs); the result is read from the log once, at the end, by this process: nothing
+in the pod can write one. Between looks the worker asks the server every second whether the
+attempt still runs: a cancel deletes the Job at once, and the evaluator, on SIGTERM, stops.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from kubernetes.client import V1Pod
+
 from evaluator.job import JobOutputError, result_from_logs
 from evaluator.plan import EvaluationPlan
 from evaluator.sources import LOG_TAIL_BYTES
@@ -34,6 +39,7 @@ from worker.kubernetes.client import (
     KubernetesExecutor,
     kubernetes_executor,
 )
+from worker.kubernetes.informer import ClusterWatch, Failure, cluster_watch
 from worker.kubernetes.manifest import (
     EVALUATOR,
     POLICY,
@@ -43,7 +49,7 @@ from worker.kubernetes.manifest import (
 )
 from worker.kubernetes.quota import demand, never_fits, shortfall
 from worker.kubernetes.spec import job_spec
-from worker.kubernetes.status import JobStatus, PodView, episodes_in
+from worker.kubernetes.status import JobStatus, PodView, episodes_in, job_status, pod_view
 from worker.outcome import conclusion, ended
 from worker.server_api import ServerAPI, ServerUnavailable
 from worker.settings import WorkerSettings
@@ -53,11 +59,17 @@ log = logging.getLogger(__name__)
 DEADLINE_GRACE_S = 300.0  # beyond the Job's own deadline, before the reconciler times it out
 API_OUTAGE_S = 600.0  # the API server unreachable this long: the attempt ends `error`
 POLICY_LOG_LINES = 400
-PROGRESS_EVERY = 3  # looks per read of the evaluator's log (each look is 2 API requests)
 CANCEL_CHECK_S = 1.0  # between looks, a heartbeat this often: a cancel stops the Job at once
 CLUSTER = ErrorCause.CLUSTER
 _ROOM = object()  # `_until_room`'s answer when the Job may be created
 _UNKNOWN = object()  # ... when the quotas could not be read: the API server decides at creation
+
+
+class _Going:
+    """A look's answer when the Job runs on."""
+
+
+GOING = _Going()
 
 
 def run_as_job(
@@ -124,8 +136,11 @@ class _Watch:
     spec: JobSpec
     plan: EvaluationPlan
     stop: threading.Event
-    _looks: int = 0
     _read_progress: dict[str, Any] = field(default_factory=dict)
+    _progress_at: float | None = None
+    """When the log was last read for progress (first: when the evaluator was seen started)."""
+    _room_checked_at: float = -1e9
+    _outage_since: float | None = None
     _state: State | None = None
     _pending_since: float | None = None
     _seen: frozenset[str] = frozenset()
@@ -203,39 +218,69 @@ class _Watch:
         return self.follow()
 
     def follow(self) -> State | None:
-        """Look at the Job until it ends (or the attempt ends elsewhere)."""
-        outage_since: float | None = None
+        """Follow the Job until it ends (or the attempt ends elsewhere): a look whenever the
+        Job or its pods change, and every `k8s_poll_interval` for the clocks (pending
+        timeout, progress); a heartbeat every `CANCEL_CHECK_S` between."""
+        with cluster_watch(self.settings) as cluster:
+            changed = cluster.subscribe(self.spec.name)
+            try:
+                return self._follow(cluster, changed)
+            finally:
+                cluster.unsubscribe(self.spec.name, changed)
+
+    def _follow(self, cluster: ClusterWatch, changed: threading.Event) -> State | None:
         every = self.settings.k8s_poll_interval
-        next_look = time.monotonic() + every
-        while not self.stop.wait(min(CANCEL_CHECK_S, every)):
-            if time.monotonic() < next_look:
+        next_look = next_beat = time.monotonic()
+        while not self.stop.is_set():
+            now = time.monotonic()
+            if changed.is_set() or now >= next_look:
+                changed.clear()
+                next_look, next_beat = now + every, now + CANCEL_CHECK_S
+                ended = self._look_at(cluster)
+                if not isinstance(ended, _Going):
+                    return ended
+            elif now >= next_beat:
+                next_beat = now + CANCEL_CHECK_S
                 if not self._beat(None):  # only asks whether the attempt still runs
                     return self._cancelled()
-                continue
-            next_look = time.monotonic() + every
-            try:
-                status = self.executor.status(*self.ids)
-                if status.phase in ("pending", "running"):
-                    ended = self._look(status)
-                    outage_since = None
-                    if ended is not None:
-                        return ended
-                    continue
-            except KubernetesError as exc:
-                now = time.monotonic()
-                outage_since = outage_since if outage_since is not None else now
-                log.warning("Job %s: the API server failed: %s", self.spec.name, exc)
-                if now - outage_since > API_OUTAGE_S:
-                    return self.end(State.ERROR, f"the Kubernetes API failed for too long: {exc}")
-                if not self._beat({"phase": "unknown"}):
-                    return self._cancelled()
-                continue
-            return self._concluded(status)
+            wait = min(next_look, next_beat) - time.monotonic()
+            changed.wait(max(0.0, min(wait, CANCEL_CHECK_S)))
         return None  # stopped: the Job runs on, and the reconciler hands it to a new watcher
 
-    def _look(self, status: JobStatus) -> State | None:
+    def _look_at(self, cluster: ClusterWatch) -> State | _Going | None:
+        """One look at what the watch knows of the Job (a request only to confirm a Job the
+        watch has not seen, and for the log when progress is due)."""
+        failure = cluster.failing()
+        if failure is not None:
+            return self._outage(failure)
+        if not cluster.synced:
+            return GOING  # its first list is under way; it wakes us when done
+        job = cluster.job(self.spec.name)
+        try:
+            # Not (yet) in the watch's cache: created a moment ago, or gone. Ask.
+            status = job_status(job) if job is not None else self.executor.status(*self.ids)
+            if status.phase not in ("pending", "running"):
+                return self._concluded(status)
+            ended = self._look(status, cluster.pods_of(self.spec.name))
+        except KubernetesError as exc:
+            now = time.monotonic()
+            self._outage_since = self._outage_since if self._outage_since is not None else now
+            return self._outage(Failure(self._outage_since, str(exc)))
+        self._outage_since = None
+        return GOING if ended is None else ended
+
+    def _outage(self, failure: Failure) -> State | _Going | None:
+        log.warning("Job %s: the API server failed: %s", self.spec.name, failure.error)
+        if time.monotonic() - failure.since > API_OUTAGE_S:
+            reason = f"the Kubernetes API failed for too long: {failure.error}"
+            return self.end(State.ERROR, reason)
+        if not self._beat({"phase": "unknown"}):
+            return self._cancelled()
+        return GOING
+
+    def _look(self, status: JobStatus, pods: list[V1Pod]) -> State | None:
         """One look at a live Job: stuck pods end it, else report progress (the heartbeat)."""
-        view = self.executor.pods(*self.ids)
+        view = pod_view(pods)
         taken = self._quotas_read and self._uid and view.count < self.spec.shards
         if taken and self._room_taken():
             return self._make_room()
@@ -247,9 +292,12 @@ class _Watch:
             return self.end(State.ERROR, reason, cause=CLUSTER)
         progress: dict[str, Any] = {"phase": status.phase, "done": 0}
         if view.evaluating:
-            if self._looks % PROGRESS_EVERY == 0:  # the log is the costly read: not every look
-                self._read_progress = self._progress()
-            self._looks += 1
+            now = time.monotonic()
+            if self._progress_at is None:
+                self._progress_at = now  # its log says little yet
+            elif now - self._progress_at >= self.settings.k8s_progress_interval:
+                self._progress_at = now
+                self._read_progress = self._progress(pods)
             progress |= self._read_progress
         if not self._beat(progress):
             return self._cancelled()
@@ -287,7 +335,11 @@ class _Watch:
 
     def _room_taken(self) -> bool:
         """Whether the quota refused this Job's pods: another worker took the room between
-        our look at the quotas and our Job's creation."""
+        our look at the quotas and our Job's creation. Asked at most every poll interval."""
+        now = time.monotonic()
+        if now - self._room_checked_at < self.settings.k8s_poll_interval:
+            return False
+        self._room_checked_at = now
         try:
             warnings = self.executor.events(*self.ids, uid=self._uid)
         except KubernetesError as exc:
@@ -326,8 +378,13 @@ class _Watch:
             return ""
         return f": {warnings[-1]}" if warnings else ""
 
-    def _progress(self) -> dict[str, Any]:
-        logs = self.executor.collect(*self.ids, container=EVALUATOR)
+    def _progress(self, pods: list[V1Pod]) -> dict[str, Any]:
+        """Progress from the evaluators' logs so far (the last read's, if this one fails)."""
+        try:
+            logs = self.executor.logs(pods, self.spec.shards, container=EVALUATOR)
+        except KubernetesError as exc:
+            log.warning("Job %s: its log could not be read: %s", self.spec.name, exc)
+            return self._read_progress
         done, last = episodes_in(logs)
         progress: dict[str, Any] = {"done": done, "total": self.plan.episode_count()}
         if last is not None and last < len(self.plan.runs):
@@ -365,21 +422,24 @@ class _Watch:
         return self.end(State.ERROR, f"the evaluator failed ({status.reason})")
 
     def _collect(self) -> State | None:
-        try:
-            logs = self.executor.collect(*self.ids, container=EVALUATOR)
+        try:  # the one read of the logs: the pods listed now, not as the watch last saw them
+            pods = self.executor.job_pods(*self.ids)
+            logs = self.executor.logs(pods, self.spec.shards, container=EVALUATOR)
             result = result_from_logs(self.plan, logs)
         except (KubernetesError, JobOutputError) as exc:
             return self.end(State.ERROR, f"the evaluation's result could not be read: {exc}")
-        policy_ended, policy_log = self._policy_side()
+        policy_ended, policy_log = self._policy_side(pods)
         state = self._report(conclusion(result, log_tail=policy_log, detail=policy_ended))
         self._delete()
         return state
 
-    def _policy_side(self) -> tuple[str | None, str]:
+    def _policy_side(self, pods: list[V1Pod]) -> tuple[str | None, str]:
         """How the policy container ended and its log tail: extras that never cost a result."""
+        view = pod_view(pods)
         try:
-            view = self.executor.pods(*self.ids)
-            logs = self.executor.collect(*self.ids, container=POLICY, tail_lines=POLICY_LOG_LINES)
+            logs = self.executor.logs(
+                pods, self.spec.shards, container=POLICY, tail_lines=POLICY_LOG_LINES
+            )
         except KubernetesError as exc:
             log.warning("Job %s: the policy's side could not be read: %s", self.spec.name, exc)
             return None, ""

@@ -1,0 +1,258 @@
+"""Watches: the API-server double serves them as a real server does, and the worker's
+`ClusterWatch` follows Jobs and pods through them (lists once, resumes, re-lists on 410)."""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from tests.worker.k8s_double import (
+    NAMESPACE,
+    ApiServerDouble,
+    executor_for,
+    make_spec,
+    running_apiserver,
+)
+from worker.kubernetes.informer import ClusterWatch
+from worker.kubernetes.manifest import build_job
+from worker.kubernetes.status import job_status
+
+JOBS = f"/apis/batch/v1/namespaces/{NAMESPACE}/jobs"
+PODS = f"/api/v1/namespaces/{NAMESPACE}/pods"
+OURS = "labelSelector=app.kubernetes.io/name%3Dmanieval"
+
+
+@pytest.fixture
+def apiserver() -> Iterator[ApiServerDouble]:
+    with running_apiserver() as double:
+        yield double
+
+
+@pytest.fixture
+def cluster(apiserver: ApiServerDouble) -> Iterator[ClusterWatch]:
+    watch = ClusterWatch(executor_for(apiserver), watch_timeout_s=(2.0, 2.0))
+    watch.start()
+    yield watch
+    watch.close()
+
+
+def until(check: Callable[[], object], what: str, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not check():
+        assert time.monotonic() < deadline, f"gave up waiting for {what}"
+        time.sleep(0.02)
+
+
+def get(apiserver: ApiServerDouble, path: str) -> Any:
+    with urllib.request.urlopen(apiserver.host + path, timeout=30) as answer:
+        return json.load(answer)
+
+
+def watch_lines(apiserver: ApiServerDouble, path: str) -> list[dict[str, Any]]:
+    """Every event of a watch request, read until the server ends it."""
+    with urllib.request.urlopen(apiserver.host + path, timeout=30) as answer:
+        assert answer.headers["Transfer-Encoding"] == "chunked"
+        return [json.loads(line) for line in answer.read().splitlines() if line.strip()]
+
+
+def start_job(apiserver: ApiServerDouble, submission_id: int = 7) -> str:
+    spec = make_spec(submission_id=submission_id)
+    apiserver.put_job(build_job(spec))
+    return spec.name
+
+
+def test_a_watch_from_a_lists_version_streams_every_change_then_ends_at_its_timeout(
+    apiserver: ApiServerDouble,
+):
+    name = start_job(apiserver)
+    listed = get(apiserver, f"{JOBS}?{OURS}")
+    version = listed["metadata"]["resourceVersion"]
+    assert [j["metadata"]["resourceVersion"] for j in listed["items"]] == [version]
+    apiserver.run(NAMESPACE, name)
+    apiserver.succeed(NAMESPACE, name, ["done"])
+    apiserver.jobs.pop((NAMESPACE, name))  # a direct edit is published too
+    events = watch_lines(
+        apiserver, f"{JOBS}?watch=true&{OURS}&resourceVersion={version}&timeoutSeconds=1"
+    )
+    assert [e["type"] for e in events] == ["MODIFIED", "MODIFIED", "DELETED"]
+    versions = [int(e["object"]["metadata"]["resourceVersion"]) for e in events]
+    assert versions == sorted(versions)
+    assert versions[0] > int(version)
+    assert events[1]["object"]["status"]["conditions"][-1]["type"] == "Complete"
+
+
+def test_a_watch_without_a_version_starts_with_the_current_objects_of_its_selector(
+    apiserver: ApiServerDouble,
+):
+    name = start_job(apiserver)
+    apiserver.run(NAMESPACE, name)
+    apiserver.pods[(NAMESPACE, "someone-else")] = {
+        "metadata": {"name": "someone-else", "namespace": NAMESPACE, "labels": {}},
+        "status": {"phase": "Running"},
+    }
+    events = watch_lines(apiserver, f"{PODS}?watch=1&{OURS}&timeoutSeconds=1")
+    assert [(e["type"], e["object"]["metadata"]["labels"]["job-name"]) for e in events] == [
+        ("ADDED", name)
+    ]
+
+
+def test_bookmarks_come_only_when_asked_for_and_carry_the_version(apiserver: ApiServerDouble):
+    apiserver.bookmark_every = 0.2
+    version = get(apiserver, JOBS)["metadata"]["resourceVersion"]
+    plain = watch_lines(apiserver, f"{JOBS}?watch=true&resourceVersion={version}&timeoutSeconds=1")
+    assert plain == []
+    marked = watch_lines(
+        apiserver,
+        f"{JOBS}?watch=true&resourceVersion={version}&allowWatchBookmarks=true&timeoutSeconds=1",
+    )
+    assert marked
+    assert {e["type"] for e in marked} == {"BOOKMARK"}
+    assert marked[0]["object"] == {
+        "kind": "Job",
+        "apiVersion": "batch/v1",
+        "metadata": {"resourceVersion": version},
+    }
+
+
+def test_a_version_older_than_the_history_is_gone_in_the_stream(apiserver: ApiServerDouble):
+    start_job(apiserver)
+    version = get(apiserver, JOBS)["metadata"]["resourceVersion"]
+    apiserver.expire_watches()
+    (event,) = watch_lines(apiserver, f"{JOBS}?watch=true&resourceVersion={version}")
+    assert event["type"] == "ERROR"
+    assert (event["object"]["kind"], event["object"]["code"]) == ("Status", 410)
+    fresh = get(apiserver, JOBS)["metadata"]["resourceVersion"]
+    assert (
+        watch_lines(apiserver, f"{JOBS}?watch=true&resourceVersion={fresh}&timeoutSeconds=1") == []
+    )
+
+
+def test_an_injected_410_answers_the_watch_request_itself(apiserver: ApiServerDouble):
+    apiserver.fail_next("GET", "/jobs", 410)
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(apiserver.host + f"{JOBS}?watch=true", timeout=30)
+    assert refused.value.code == 410
+
+
+def test_requests_are_counted_by_verb_and_resource(apiserver: ApiServerDouble):
+    name = start_job(apiserver)
+    apiserver.run(NAMESPACE, name)
+    executor = executor_for(apiserver)
+    executor.status(7, 1)
+    executor.collect(7, 1)
+    watch_lines(apiserver, f"{PODS}?watch=true&timeoutSeconds=0")
+    assert apiserver.counts() == {
+        "get jobs": 2,
+        "list pods": 1,
+        "get pods/log": 1,
+        "watch pods": 1,
+    }
+
+
+def test_the_cluster_watch_follows_a_job_to_its_end_with_two_watches(
+    apiserver: ApiServerDouble, cluster: ClusterWatch
+):
+    name = make_spec().name
+    woken = cluster.subscribe(name)
+    until(lambda: cluster.synced, "the first lists")
+    woken.clear()
+    start_job(apiserver)
+    until(woken.is_set, "the Job's creation to wake its follower")
+    apiserver.run(NAMESPACE, name)
+    until(lambda: len(cluster.pods_of(name)) == 1, "its pod")
+    apiserver.succeed(NAMESPACE, name, ["done"])
+    until(lambda: job_status(cluster.job(name)).phase == "succeeded", "its end")  # type: ignore[arg-type]
+    apiserver.finish_deletions()
+    apiserver.jobs.pop((NAMESPACE, name))
+    until(lambda: cluster.job(name) is None, "its deletion")
+    made = apiserver.counts()
+    assert (made["list jobs"], made["list pods"]) == (1, 1)
+    assert set(made) == {"list jobs", "list pods", "watch jobs", "watch pods"}
+
+
+def test_a_watch_ended_by_its_timeout_resumes_from_its_version_without_listing_again(
+    apiserver: ApiServerDouble, cluster: ClusterWatch
+):
+    until(lambda: apiserver.counts()["watch jobs"] >= 2, "a watch ended and resumed")
+    name = start_job(apiserver)
+    until(lambda: cluster.job(name) is not None, "the Job")
+    watches = [r for r in apiserver.requests if r.query.get("watch") and "/jobs" in r.path]
+    assert watches[0].query["resourceVersion"] == watches[1].query["resourceVersion"]
+    assert apiserver.counts()["list jobs"] == 1
+    assert cluster.jobs.relists == 0
+
+
+def test_a_410_mid_stream_lists_again_and_the_job_is_still_followed_to_its_end(
+    apiserver: ApiServerDouble, cluster: ClusterWatch
+):
+    name = start_job(apiserver)
+    apiserver.run(NAMESPACE, name)
+    until(lambda: len(cluster.pods_of(name)) == 1, "its pod")
+    with apiserver.together():  # compacted, and the Job ended, before the watch resumed
+        apiserver.expire_watches()
+        apiserver.succeed(NAMESPACE, name, ["done"])
+    until(lambda: job_status(cluster.job(name)).phase == "succeeded", "its end")  # type: ignore[arg-type]
+    assert cluster.jobs.relists >= 1
+    assert apiserver.counts()["list jobs"] >= 2
+
+
+def test_an_unreachable_api_server_is_reported_then_forgotten_once_back(
+    apiserver: ApiServerDouble, cluster: ClusterWatch
+):
+    until(lambda: cluster.synced, "the first lists")
+    apiserver.expire_watches()  # both watches end and list again...
+    apiserver.fail_next("GET", "/jobs", 500)  # ...and that list fails once
+    until(lambda: cluster.failing() is not None, "the failure")
+    failure = cluster.failing()
+    assert failure is not None
+    assert "500" in failure.error
+    name = start_job(apiserver)
+    until(lambda: cluster.job(name) is not None, "the Job, once the server answers")
+    until(lambda: cluster.failing() is None, "the failure forgotten")
+
+
+def test_a_410_answering_the_resumed_watch_request_lists_again(
+    apiserver: ApiServerDouble, cluster: ClusterWatch
+):
+    until(lambda: apiserver.counts()["watch jobs"] == 1, "the first watch")
+    apiserver.fail_next("GET", "/jobs", 410)  # the resumed watch, once the first times out
+    until(lambda: cluster.jobs.relists == 1, "a list again")
+    name = start_job(apiserver)
+    until(lambda: cluster.job(name) is not None, "the Job, followed again")
+    made = apiserver.counts()
+    assert made["list jobs"] == 2
+    assert cluster.failing() is None
+
+
+def test_what_was_deleted_while_the_watch_had_expired_is_gone_after_the_new_list(
+    apiserver: ApiServerDouble, cluster: ClusterWatch
+):
+    name = start_job(apiserver)
+    apiserver.run(NAMESPACE, name)
+    until(lambda: len(cluster.pods_of(name)) == 1, "its pod")
+    with apiserver.together():  # the deletion's events are compacted away before delivery
+        apiserver.exceed_deadline(NAMESPACE, name)
+        apiserver.jobs.pop((NAMESPACE, name))
+        apiserver.expire_watches()
+    until(lambda: cluster.job(name) is None and cluster.pods_of(name) == [], "an empty cache")
+
+
+def test_the_first_list_follows_its_pages(
+    apiserver: ApiServerDouble, monkeypatch: pytest.MonkeyPatch
+):
+    monkeypatch.setattr("worker.kubernetes.informer.LIST_PAGE", 2)
+    names = [start_job(apiserver, submission_id=sid) for sid in range(1, 6)]
+    watch = ClusterWatch(executor_for(apiserver))
+    watch.start()
+    try:
+        until(lambda: watch.synced, "the first lists")
+        assert [watch.job(name) is not None for name in names] == [True] * 5
+        assert apiserver.counts()["list jobs"] == 3  # 2 + 2 + 1
+    finally:
+        watch.close()
