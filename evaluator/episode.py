@@ -65,6 +65,8 @@ def run_episode(
     raw_obs, _ = env.reset(seed=seed)
     seen = runtime.begin_episode(seed, to_numpy(raw_obs))
     progress = Progress()
+    if frames is not None:  # the reset state: the scene before the policy's first action
+        frames.append(to_numpy(env.render()))
 
     def record(failure: tuple[FailureKind, str] | None) -> EpisodeResult:
         failed = failure is not None

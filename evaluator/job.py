@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from evaluator.evaluation import build_result, installed_versions
 from evaluator.plan import EvaluationPlan, TaskRun
-from evaluator.results import Abort, EpisodeResult, EvaluationResult, SuiteRef, Versions
+from evaluator.results import Abort, EpisodeResult, EvaluationResult, SuiteRef, Versions, Video
 from evaluator.runner import RunOptions, ShardOutcome, make_shards, run_shard
 from evaluator.suite import SEED_LIMIT, Suite, SuiteError
 
@@ -34,6 +34,7 @@ JOB_SPEC_FILE_ENV = "MANIEVAL_JOB_SPEC_FILE"
 POLICY_ENV = "MANIEVAL_POLICY"
 SHARDS_ENV = "MANIEVAL_SHARDS"
 ENDPOINT_DIR_ENV = "MANIEVAL_ENDPOINT_DIR"
+VIDEO_DIR_ENV = "MANIEVAL_VIDEO_DIR"
 INDEX_ENV = "JOB_COMPLETION_INDEX"  # set by Kubernetes in every pod of an Indexed Job
 ENDPOINT_DIR = "/run/manieval/endpoint"
 MARK = "MANIEVAL-RESULT"
@@ -88,6 +89,8 @@ class EvaluationJob(BaseModel):
             limits=suite.limits,
             runs=runs,
             ignore_terminations=suite.ignore_terminations,
+            videos=suite.videos,
+            video_conditions=suite.video_conditions,
         )
 
     def canonical_json(self) -> str:
@@ -100,7 +103,8 @@ def evaluation_job(plan: EvaluationPlan, *, suite_yaml: str) -> EvaluationJob:
     seeds = {run.env_id: run.seeds for run in plan.runs}
     conditions = tuple(dict.fromkeys(run.condition.name for run in plan.runs))
     job = EvaluationJob(suite_yaml=suite_yaml, phase=plan.phase, seeds=seeds, conditions=conditions)
-    if job.plan() != plan.model_copy(update={"record_video": False}):
+    recording = {"videos": plan.videos, "video_conditions": plan.video_conditions}
+    if job.plan().model_copy(update=recording) != plan:
         raise ValueError("the plan is not the suite's tasks in suite order on one seed list each")
     return job
 
@@ -157,6 +161,7 @@ class ShardReport(BaseModel):
     episodes: list[tuple[int, EpisodeResult]]
     abort: tuple[int, int, Abort] | None = None
     policy_time_s: float = Field(default=0.0, ge=0)
+    videos: list[Video] = []
 
 
 def run_job(
@@ -166,8 +171,10 @@ def run_job(
     index: int,
     shards: int,
     socket_dir: Path,
+    video_dir: Path | None = None,
 ) -> EvaluationResult | ShardReport:
-    """Run shard `index` of `shards`; one shard gives the whole result document."""
+    """Run shard `index` of `shards`; one shard gives the whole result document. Videos (if
+    the plan records any) are written to `video_dir`, a volume the policy's container lacks."""
     if not 0 <= index < shards:
         raise ValueError(f"shard index {index} is not in 0..{shards - 1}")
     started = datetime.now(UTC)
@@ -178,7 +185,7 @@ def run_job(
         socket_dir.mkdir(parents=True, exist_ok=True)
         previous = os.umask(SOCKET_UMASK)
         try:
-            options = RunOptions(socket_dir=socket_dir)
+            options = RunOptions(socket_dir=socket_dir, video_dir=video_dir)
             outcome = run_shard(plan, source, present[index], options=options, on_episode=_progress)
         finally:
             os.umask(previous)
@@ -194,6 +201,7 @@ def run_job(
         episodes=outcome.episodes,
         abort=outcome.abort,
         policy_time_s=outcome.policy_time_s,
+        videos=outcome.videos,
     )
 
 
@@ -254,7 +262,9 @@ def result_from_logs(plan: EvaluationPlan, logs: Sequence[str]) -> EvaluationRes
     if any(r.shards != len(logs) for r in reports):
         raise JobOutputError(f"shard reports do not all say {len(logs)} shards")
     outcomes = [
-        ShardOutcome(episodes=r.episodes, abort=r.abort, policy_time_s=r.policy_time_s)
+        ShardOutcome(
+            episodes=r.episodes, abort=r.abort, policy_time_s=r.policy_time_s, videos=r.videos
+        )
         for r in reports
     ]
     result = build_result(
@@ -291,6 +301,10 @@ def evaluate_job(
     endpoint_dir: Annotated[
         Path, typer.Option(envvar=ENDPOINT_DIR_ENV, help="Where to listen (a shared volume).")
     ] = Path(ENDPOINT_DIR),
+    video_dir: Annotated[
+        Path | None,
+        typer.Option(envvar=VIDEO_DIR_ENV, help="Write episode videos here (none: no videos)."),
+    ] = None,
 ) -> None:
     """Run the evaluation a Kubernetes Job describes; print the outcome for the worker."""
     if threading.current_thread() is threading.main_thread():  # not when called in a test
@@ -303,7 +317,12 @@ def evaluate_job(
         print(f"manieval evaluate-job: bad job spec: {exc}", file=sys.stderr)
         raise typer.Exit(2) from None
     document = run_job(
-        plan, ExternalPolicy(policy), index=index, shards=shards, socket_dir=endpoint_dir
+        plan,
+        ExternalPolicy(policy),
+        index=index,
+        shards=shards,
+        socket_dir=endpoint_dir,
+        video_dir=video_dir,
     )
     sys.stderr.flush()
     write_document(document, sys.stdout)

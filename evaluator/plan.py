@@ -34,7 +34,15 @@ class EvaluationPlan(BaseModel):
     limits: Limits
     runs: tuple[TaskRun, ...]
     ignore_terminations: bool = False
-    record_video: bool = False
+    videos: int = Field(default=0, ge=0)
+    """Episodes recorded per task run: those with an index below it (the first N)."""
+    video_conditions: tuple[str, ...] | None = None
+    """The conditions whose task runs are recorded (None: every one)."""
+
+    def records(self, run: TaskRun, index: int) -> bool:
+        """Whether episode `index` of task run `run` is recorded as a video."""
+        wanted = self.video_conditions is None or run.condition.name in self.video_conditions
+        return wanted and index < self.videos
 
     def episode_count(self) -> int:
         """Episodes in the whole plan."""
@@ -50,10 +58,18 @@ def build_plan(
     episodes: int | None = None,
     secret: bytes | None = None,
     record_video: bool = False,
+    videos: int | None = None,
 ) -> EvaluationPlan:
-    """Resolve a suite, a phase and optional narrowing into concrete task runs."""
+    """Resolve a suite, a phase and optional narrowing into concrete task runs.
+
+    `videos` episodes of each task run are recorded (None: the suite's `videos`);
+    `record_video` asks for at least the first one, whatever the suite says.
+    """
     if episodes is not None and episodes < 1:
         raise SuiteError("episodes must be at least 1")
+    if videos is not None and videos < 0:
+        raise SuiteError("videos must not be negative")
+    recorded = suite.videos if videos is None else videos
     selected_tasks = [suite.task(t) for t in tasks] if tasks else list(suite.tasks)
     selected_conditions = (
         [suite.condition(c) for c in conditions] if conditions else list(suite.conditions)
@@ -81,5 +97,7 @@ def build_plan(
         limits=suite.limits,
         runs=tuple(runs),
         ignore_terminations=suite.ignore_terminations,
-        record_video=record_video,
+        videos=max(recorded, 1) if record_video else recorded,
+        # Asked for on the command line: every condition, whatever the suite limits it to.
+        video_conditions=None if record_video else suite.video_conditions,
     )

@@ -110,11 +110,7 @@ def run_units(
             return
         run = plan.runs[run_index]
         runtime = ConditionRuntime(run.condition)
-        record = (
-            plan.record_video
-            and options.video_dir is not None
-            and _first_of_task(plan, run_index, episodes)
-        )
+        record = options.video_dir is not None and any(plan.records(run, i) for i, _ in episodes)
         env = make_env(run, runtime, render=record)
         try:
             _run_task(
@@ -133,13 +129,6 @@ def run_units(
             )
         finally:
             env.close()
-
-
-def _first_of_task(
-    plan: EvaluationPlan, run_index: int, episodes: Sequence[tuple[int, int]]
-) -> bool:
-    first_condition = plan.runs[0].condition.name
-    return plan.runs[run_index].condition.name == first_condition and episodes[0][0] == 0
 
 
 def _run_task(
@@ -174,7 +163,7 @@ def _run_task(
                     at_end_measured=plan.ignore_terminations,
                 )
             else:
-                frames: list[Any] | None = [] if record and index == episodes[0][0] else None
+                frames: list[Any] | None = [] if record and plan.records(run, index) else None
                 result = run_episode(
                     env,
                     channel,

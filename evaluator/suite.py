@@ -119,6 +119,13 @@ class Suite(_Strict):
     shards: int = Field(default=1, ge=1, le=64)
     """Pods a submission's episodes are spread over on Kubernetes (an Indexed Job); the other
     executors ignore it. Episodes do not depend on where they ran, so it is not in the hash."""
+    videos: int = Field(default=0, ge=0, le=100)
+    """The first `videos` episodes of each task under each condition are recorded as videos
+    (shown on the submission's page); 0 records none. Recording changes no result, so it is
+    not in the hash."""
+    video_conditions: tuple[str, ...] | None = None
+    """Only these conditions' episodes are recorded (None: every condition's): rendering a
+    frame costs several times a step on the CPU. Not in the hash either."""
 
     @model_validator(mode="after")
     def _unique_names(self) -> Suite:
@@ -129,6 +136,13 @@ class Suite(_Strict):
             duplicates = sorted({n for n in names if names.count(n) > 1})
             if duplicates:
                 raise ValueError(f"duplicate {label} names: {', '.join(duplicates)}")
+        known = [c.name for c in self.conditions]
+        unknown = [c for c in self.video_conditions or () if c not in known]
+        if unknown:
+            raise ValueError(
+                f"video_conditions names no condition of the suite: {', '.join(unknown)} "
+                f"(it has: {', '.join(known)})"
+            )
         return self
 
     def task(self, env_id: str) -> TaskConfig:
@@ -156,7 +170,9 @@ class Suite(_Strict):
 
     def sha256(self) -> str:
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
-        content = self.model_dump(mode="json", exclude={"shards", "title"})
+        content = self.model_dump(
+            mode="json", exclude={"shards", "title", "videos", "video_conditions"}
+        )
         for name in _HASHED_WHEN_SET:  # suites that do not use a newer setting keep their hash
             if content[name] == type(self).model_fields[name].default:
                 del content[name]

@@ -34,6 +34,7 @@ from server.registry import api as registry_api
 from server.submissions import api as submissions_api
 from server.submissions import events, internal, submit_pages
 from server.submissions import pages as submissions_pages
+from server.submissions import videos as submissions_videos
 from server.submissions.changes import ChangeFeed
 from server.submissions.images import image_resolver
 from server.submissions.outbox import CeleryQueue, Dispatcher, Unattached, WorkQueue
@@ -108,6 +109,7 @@ def create_app(
         challenges_api,
         leaderboard_api,
         submissions_api,
+        submissions_videos,
         internal,
     ):
         app.include_router(api.router)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from evaluator.bundled import LOCAL_PREFIX, bundled_policies
@@ -22,6 +23,7 @@ from internal_api.schemas import Assignment, State
 from worker.outcome import conclusion, ended
 from worker.server_api import ServerAPI, ServerUnavailable
 from worker.settings import WorkerSettings
+from worker.videos import recording_dir, upload_videos
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +112,7 @@ def execute(api: ServerAPI, settings: WorkerSettings, handed: Assignment) -> Sta
     if started is None or not started.applied:
         return started.state if started is not None else None
     try:
-        result = _evaluate(api, sid, attempt, plan, source)
+        result = _evaluate_recording(api, settings, sid, attempt, plan, source)
     except Exception as exc:
         if api.stop.is_set():  # whatever broke while stopping is no fault to report
             log.warning("submission %s stopped with %s: %s", sid, type(exc).__name__, exc)
@@ -141,8 +143,35 @@ def wall_clock_limit_s(plan: EvaluationPlan) -> float:
     return plan.limits.budget_s * 1.1 + own + DEADLINE_GRACE_S
 
 
+def _evaluate_recording(
+    api: ServerAPI,
+    settings: WorkerSettings,
+    sid: int,
+    attempt: int,
+    plan: EvaluationPlan,
+    source: PolicySource,
+) -> EvaluationResult | State | None:
+    """`_evaluate`, with the plan's episode videos recorded and stored on the server before
+    the final report (the page shows them as soon as the result is there)."""
+    if plan.videos == 0:
+        return _evaluate(api, sid, attempt, plan, source)
+    with recording_dir(settings, submission_id=sid, attempt=attempt) as directory:
+        result = _evaluate(api, sid, attempt, plan, source, video_dir=directory)
+        if not isinstance(result, EvaluationResult):
+            return result
+        return upload_videos(
+            api, submission_id=sid, attempt=attempt, result=result, directory=directory
+        )
+
+
 def _evaluate(
-    api: ServerAPI, sid: int, attempt: int, plan: EvaluationPlan, source: PolicySource
+    api: ServerAPI,
+    sid: int,
+    attempt: int,
+    plan: EvaluationPlan,
+    source: PolicySource,
+    *,
+    video_dir: Path | None = None,
 ) -> EvaluationResult | State | None:
     """The result, or the state the attempt was ended in elsewhere while it ran, or None when
     the worker's stop interrupted it."""
@@ -199,7 +228,9 @@ def _evaluate(
     beat = threading.Thread(target=heartbeat, name=f"heartbeat-{sid}", daemon=True)
     beat.start()
     try:
-        result = evaluate(plan, source, on_episode=report, should_stop=should_stop)
+        result = evaluate(
+            plan, source, video_dir=video_dir, on_episode=report, should_stop=should_stop
+        )
     finally:
         finished.set()
         beat.join()

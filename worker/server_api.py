@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 
 RETRYABLE_STATUS = frozenset({429, 500, 502, 503, 504})
 WAIT_CAP_S = 10.0
+VIDEO_PATIENCE_S = 60.0  # videos are a view of the result: not worth holding an attempt up
 
 
 class ServerUnavailable(Exception):
@@ -242,6 +243,16 @@ class ServerAPI:
             return None
         return ReportOut.model_validate(response.json())
 
+    # Videos ----------------------------------------------------------------------------------
+
+    def upload_video(self, submission_id: int, attempt: int, path: Path) -> bool:
+        """Store one episode video of a running attempt on the server (its file name says
+        which); False when the attempt is no longer current or running."""
+        url = f"{_attempt(submission_id, attempt)}/videos/{path.name}"
+        content = (path.read_bytes(), "video/mp4")
+        response = self._send("PUT", url, None, patience=VIDEO_PATIENCE_S, content=content)
+        return response.status_code not in (404, 409)
+
     # Reconciling -----------------------------------------------------------------------------
 
     def silent(self) -> list[AttemptRef]:
@@ -256,8 +267,17 @@ class ServerAPI:
 
     # Transport -------------------------------------------------------------------------------
 
-    def _send(self, method: str, path: str, body: Any, *, patience: float) -> httpx.Response:
-        """One request, retried on outages for up to `patience` seconds (0: tried once)."""
+    def _send(
+        self,
+        method: str,
+        path: str,
+        body: Any,
+        *,
+        patience: float,
+        content: tuple[bytes, str] | None = None,
+    ) -> httpx.Response:
+        """One request, retried on outages for up to `patience` seconds (0: tried once);
+        `content` (bytes, media type) is sent as the body instead of JSON."""
         retrying = Retrying(
             retry=retry_if_exception_type(_Retryable),
             wait=_wait,
@@ -268,7 +288,7 @@ class ServerAPI:
         try:
             for try_ in retrying:
                 with try_:
-                    return self._once(method, path, body)
+                    return self._once(method, path, body, content)
         except _Retryable as exc:
             raise ServerUnavailable(f"{method} {path}: {exc}") from None
         raise AssertionError("unreachable: tenacity either returns or raises")
@@ -276,9 +296,17 @@ class ServerAPI:
     def _sleep(self, seconds: float) -> None:
         self.stop.wait(seconds)  # a worker told to stop does not sit out a backoff
 
-    def _once(self, method: str, path: str, body: Any) -> httpx.Response:
+    def _once(
+        self, method: str, path: str, body: Any, content: tuple[bytes, str] | None = None
+    ) -> httpx.Response:
         try:
-            response = self._http.request(method, path, json=body)
+            if content is not None:
+                data, media_type = content
+                response = self._http.request(
+                    method, path, content=data, headers={"Content-Type": media_type}
+                )
+            else:
+                response = self._http.request(method, path, json=body)
         except httpx.TransportError as exc:
             raise _Retryable(f"{type(exc).__name__}: {exc}") from None
         if response.status_code in RETRYABLE_STATUS:

@@ -150,6 +150,14 @@ class Settings(BaseSettings):
     """Largest request body (JSON or form) accepted; a larger one gets 413 before parsing."""
     max_internal_body_bytes: int = Field(default=16 * 1024**2, ge=64 * 1024, le=1024**3)
     """Largest body of a worker's report to ``/internal/v1`` (a result and a log tail)."""
+    # episode videos (issue 14, docs/videos.md)
+    video_dir: Path | None = None
+    """Where the episode videos workers upload are kept (``<video_dir>/<submission>/<attempt>/``);
+    None: ``<data_dir>/videos``. On Kubernetes a volume the evaluation Jobs write to as well."""
+    max_video_bytes: int = Field(default=16 * 1024**2, ge=64 * 1024, le=1024**3)
+    """Largest episode video a worker may upload (also bounded by `max_internal_body_bytes`)."""
+    max_videos_per_attempt: int = Field(default=500, ge=0, le=100_000)
+    """How many videos one attempt may store; uploads beyond it are refused (413)."""
     login_failures_per_address: Annotated[str, BeforeValidator(Rate.checked)] = "30/hour"
     """Failed logins one client address may make, whatever account (docs/server.md)."""
     login_failures_per_account_address: Annotated[str, BeforeValidator(Rate.checked)] = "5/hour"
@@ -266,6 +274,10 @@ class Settings(BaseSettings):
                     "when MANIEVAL_REGISTRY_DOMAIN is set"
                 )
         return self
+
+    @property
+    def resolved_video_dir(self) -> Path:
+        return self.video_dir or self.data_dir / "videos"
 
     @property
     def resolved_database_url(self) -> str:

@@ -14,6 +14,7 @@ import hmac
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Request, Response
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
 from internal_api.schemas import (
@@ -32,14 +33,18 @@ from server.kit.deps import DBDep, services
 from server.kit.errors import Unauthorized
 from server.submissions.reconcile import reconcile, silent
 from server.submissions.reports import (
+    check_running,
     current_state,
     report_final,
     report_progress,
     report_running,
 )
+from server.submissions.video_store import MEDIA_TYPE, NotAVideo
+from server.submissions.videos import video_store
 from server.submissions.work import assignment, claim_next, end_restarted
 
 Id = Annotated[int, Path(ge=1, le=2**31 - 1)]
+VideoName = Annotated[str, Path(min_length=1, max_length=300)]
 WorkerName = Annotated[str, Path(min_length=1, max_length=200, pattern=r"^[\x21-\x7e]+$")]
 
 
@@ -131,6 +136,28 @@ def post_final(
     if body.cause is not None:  # it may run again: send it after the commit
         services(request).dispatcher.dispatch()
     return _out(db, submission_id, applied)
+
+
+@router.put(f"{ATTEMPT}/videos/{{name}}", status_code=204)
+async def put_video(submission_id: Id, attempt: Id, name: VideoName, request: Request) -> Response:
+    """Store an episode video of a running attempt (MP4, named as the evaluator names it, at
+    most `max_video_bytes`); 409 once the attempt has ended or been replaced."""
+    if request.headers.get("content-type", "").partition(";")[0].strip() != MEDIA_TYPE:
+        raise NotAVideo(f"send the video as {MEDIA_TYPE}")
+    data = await request.body()  # bounded by max_internal_body_bytes before it is read
+    await run_in_threadpool(_store_video, request, submission_id, attempt, name, data)
+    return Response(status_code=204)
+
+
+def _store_video(
+    request: Request, submission_id: int, attempt: int, name: str, data: bytes
+) -> None:
+    svc = services(request)
+    with svc.sessions() as db:
+        check_running(db, submission_id=submission_id, attempt=attempt)
+    video_store(svc.settings).store(
+        submission_id=submission_id, attempt=attempt, name=name, data=data
+    )
 
 
 @router.get("/attempts/silent")

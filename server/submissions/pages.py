@@ -2,22 +2,22 @@
 owner's and administrators' actions.
 
 Who sees what is the API's rule (`server.submissions.service`): a submission others may not see is a
-404, and its episodes, log and videos are for its owner and administrators only.
+404; its episodes and log are for its owner and administrators only, its episode videos for
+whoever sees it (`server.submissions.videos`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Form, Query, Request
-from fastapi.responses import FileResponse, Response
+from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
 from server.challenges.charts import TaskSuccess, success_bars
 from server.kit.deps import DBDep, Id, services
-from server.kit.errors import Forbidden, NotFound
+from server.kit.errors import Forbidden
 from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
 from server.models import EpisodeResultRow, State, Submission, User
 from server.submissions.queue import queue_out
@@ -33,6 +33,8 @@ from server.submissions.service import (
     task_rows,
     transitions_of,
 )
+from server.submissions.video_store import VideoStore
+from server.submissions.videos import video_store, videos_of
 
 router = APIRouter(include_in_schema=False)
 
@@ -53,11 +55,9 @@ def _episodes(db: DB, s: Submission, page: int) -> tuple[list[Episode], int]:
     return [Episode(condition=c, env_id=e, row=r) for r, c, e in rows], total
 
 
-def _videos(s: Submission) -> list[dict[str, Any]]:
-    return list((s.result or {}).get("videos") or [])
-
-
-def outcome(db: DB, s: Submission, who: Viewer, episode_page: int = 1) -> dict[str, Any]:
+def outcome(
+    db: DB, s: Submission, who: Viewer, episode_page: int = 1, *, store: VideoStore
+) -> dict[str, Any]:
     """What the page shows below the live timeline: it changes when the submission ends."""
     private = owned_or_admin(s, who.user)
     rows = task_rows(db, submission=s)
@@ -85,7 +85,7 @@ def outcome(db: DB, s: Submission, who: Viewer, episode_page: int = 1) -> dict[s
         "episode_page": episode_page,
         "episode_pages": max(1, -(-episode_total // EPISODES_PER_PAGE)),
         "show_seed": s.phase.public_seeds,
-        "videos": _videos(s) if private else [],
+        "videos": videos_of(submission=s, store=store),
         "ended_badly": s.state in ENDED_BADLY,
         "final": s.state.final,
     }
@@ -105,7 +105,7 @@ def submission_page(
         transitions=transitions,
         last_transition=transitions[-1].id if transitions else 0,
         queue=queue_out(db, submission=s, settings=services(request).settings),
-        **outcome(db, s, who, episodes),
+        **outcome(db, s, who, episodes, store=video_store(services(request).settings)),
     )
 
 
@@ -113,21 +113,8 @@ def submission_page(
 def outcome_fragment(submission_id: Id, request: Request, who: ViewerDep, db: DBDep) -> Response:
     """The part of the page below the timeline, fetched by the page's script when it ends."""
     s = get_visible(db, submission_id=submission_id, user=who.user)
-    return render(request, who, "_outcome.html", **outcome(db, s, who))
-
-
-@router.get("/submissions/{submission_id}/videos/{index}")
-def video(submission_id: Id, index: int, request: Request, who: ViewerDep, db: DBDep) -> Response:
-    """An episode video of the current attempt (owner and administrators)."""
-    s = get_owned(db, submission_id=submission_id, user=who.user)
-    videos = _videos(s)
-    if not 0 <= index < len(videos):
-        raise NotFound(f"no video {index}")
-    root = services(request).settings.data_dir.resolve()
-    path = Path(str(videos[index].get("path", ""))).resolve()
-    if not path.is_relative_to(root) or not path.is_file():  # only files the server wrote
-        raise NotFound(f"no video {index}")
-    return FileResponse(path, media_type="video/mp4")
+    store = video_store(services(request).settings)
+    return render(request, who, "_outcome.html", **outcome(db, s, who, store=store))
 
 
 # Actions ------------------------------------------------------------------------------------

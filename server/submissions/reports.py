@@ -199,6 +199,14 @@ def _store_results(db: DB, submission: Submission, result: EvaluationResult) -> 
     db.flush()
 
 
+def check_running(db: DB, *, submission_id: int, attempt: int) -> None:
+    """NotFound or Conflict unless `attempt` is the submission's current one and still runs
+    (what a worker may store videos for)."""
+    submission = _current(db, submission_id, attempt)
+    if submission.state not in (State.LAUNCHING, State.RUNNING):
+        raise Conflict(f"attempt {attempt} of submission {submission_id} has ended")
+
+
 def current_state(db: DB, *, submission_id: int) -> State:
     """The submission's state as the database has it now (what a report's answer carries)."""
     submission = db.get(Submission, submission_id, populate_existing=True)

@@ -94,7 +94,7 @@ def test_evaluate_records_the_first_episode_of_each_task_as_video(
     [video] = result.videos
     assert (video.env_id, video.condition, video.episode) == ("PushCube-v1", "nominal", 0)
     frames = imageio.mimread(video.path)
-    assert len(frames) == result.conditions[0].tasks[0].episodes[0].steps
+    assert len(frames) == result.conditions[0].tasks[0].episodes[0].steps + 1  # reset first
     assert frames[0].ndim == 3
 
 

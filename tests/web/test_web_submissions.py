@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
@@ -42,7 +40,7 @@ def test_private_and_hidden_submissions_are_404_to_others_like_the_api(
     hidden.hidden = True
     db.commit()
     for s in (private, hidden):
-        for path in ("", "/outcome", "/events", "/videos/0"):
+        for path in ("", "/outcome", "/events"):
             for who in ("bob", "anonymous"):
                 r = people[who].get(f"/submissions/{s.id}{path}")
                 assert r.status_code == 404, (who, path)
@@ -81,30 +79,35 @@ def test_a_failed_submission_says_why(
     assert SECRET not in html
 
 
-def test_videos_are_served_to_the_owner_from_the_data_directory_only(
+def test_stored_videos_of_the_current_attempt_are_shown_to_whoever_sees_the_submission(
     db: Session, tiny: Challenge, people: dict[str, TestClient], settings: Settings
 ) -> None:
     from server.models import User
 
-    clip = settings.data_dir / "videos" / "nominal-PickCube-v1-ep0.mp4"
-    clip.parent.mkdir(parents=True)
-    clip.write_bytes(b"\x00\x00\x00\x18ftypmp42")
-    outside = Path("/etc/hostname")
     alice = db.query(User).filter_by(username="alice").one()
-    videos = [
-        Video(env_id="PickCube-v1", condition="nominal", episode=0, path=str(clip)),
-        Video(env_id="PickCube-v1", condition="nominal", episode=1, path=str(outside)),
+    videos = [  # the worker's paths mean nothing to the server: it looks names up itself
+        Video(env_id="PickCube-v1", condition="nominal", episode=0, path="/etc/hostname"),
+        Video(env_id="PickCube-v1", condition="nominal", episode=1, path="/etc/hostname"),
     ]
-    s = finished(db, alice, tiny, [True], videos=videos)
+    s = finished(db, alice, tiny, [True, False], videos=videos, public=False)
+    clip = settings.data_dir / "videos" / str(s.id) / "1" / "nominal--PickCube-v1--ep0.mp4"
+    clip.parent.mkdir(parents=True)
+    clip.write_bytes(b"\x00\x00\x00\x18ftypmp42")  # episode 1 was listed, never stored
+    url = f"/api/v1/submissions/{s.id}/videos/nominal--PickCube-v1--ep0.mp4"
     html = people["alice"].get(f"/submissions/{s.id}").text
-    assert f'<video controls preload="metadata" src="/submissions/{s.id}/videos/0">' in html
-    r = people["alice"].get(f"/submissions/{s.id}/videos/0")
+    assert html.count("<video ") == 1
+    assert f'src="{url}"' in html
+    assert "PickCube-v1</strong>, nominal, episode 0" in html
+    r = people["alice"].get(url)
     assert r.status_code == 200
     assert r.headers["content-type"] == "video/mp4"
-    assert people["alice"].get(f"/submissions/{s.id}/videos/1").status_code == 404
-    assert people["alice"].get(f"/submissions/{s.id}/videos/9").status_code == 404
-    assert people["bob"].get(f"/submissions/{s.id}/videos/0").status_code == 404
-    assert "<video" not in people["bob"].get(f"/submissions/{s.id}").text
+    assert people["alice"].get(url.replace("ep0", "ep1")).status_code == 404
+    for who in ("bob", "anonymous"):
+        assert people[who].get(url).status_code == 404
+    s.public = True
+    db.commit()
+    assert people["bob"].get(url).status_code == 200
+    assert f'src="{url}"' in people["anonymous"].get(f"/submissions/{s.id}").text
 
 
 def act(client: TestClient, s: Submission, action: str, **fields: str) -> int:

@@ -31,6 +31,7 @@ from evaluator.job import (
     JOB_SPEC_FILE_ENV,
     POLICY_ENV,
     SHARDS_ENV,
+    VIDEO_DIR_ENV,
     EvaluationJob,
 )
 from evaluator.plan import EvaluationPlan
@@ -57,6 +58,8 @@ GPU_RESOURCE = "nvidia.com/gpu"
 EVALUATION_KEY = "evaluation.json"
 EVALUATION_MOUNT = "/etc/manieval-evaluation"
 """Where the evaluator reads the evaluation (seeds included) from the attempt's Secret."""
+VIDEO_MOUNT = "/run/manieval/videos"
+"""Where the evaluator writes episode videos: the attempt's directory of the video volume."""
 MAX_SHARDS = 64
 MAX_PAYLOAD_BYTES = 100_000  # well under a Secret's 1 MiB
 _QUANTITY = re.compile(r"^(\d+(\.\d*)?|\.\d+)([KMGTPE]i|[numkMGTPE]|[eE][+-]?\d+)?$")
@@ -109,6 +112,10 @@ class JobSpec:
     image_pull_secrets: tuple[str, ...] = ()
     """Secrets in the evaluation namespace to pull the evaluator's and policies' images."""
     scratch_size: str = "1Gi"
+    video_claim: str | None = None
+    """A ReadWriteMany PersistentVolumeClaim in the evaluation namespace, on the storage the
+    server reads videos from: the evaluator (never the policy) writes the attempt's videos to
+    its `<submission>/<attempt>` directory. None: the Job records no videos."""
     evaluator_command: tuple[str, ...] = ("manieval", "evaluate-job")
 
     def __post_init__(self) -> None:
@@ -131,6 +138,8 @@ class JobSpec:
                 yield f"{value!r} is not a positive quantity"
         if self.active_deadline_seconds < 1 or self.ttl_seconds_after_finished < 0:
             yield "the deadline must be positive and the TTL not negative"
+        if self.video_claim is not None and not _DNS_NAME.match(self.video_claim):
+            yield f"video claim {self.video_claim!r} is not a DNS name"
         if self.runtime_class_name is not None and not _DNS_NAME.match(self.runtime_class_name):
             yield f"runtime class {self.runtime_class_name!r} is not a DNS name"
         for key, value in self.node_selector:
@@ -297,6 +306,9 @@ def _pod_spec(spec: JobSpec) -> dict[str, Any]:
             },
         ],
     }
+    if spec.video_claim is not None:
+        claim = {"claimName": spec.video_claim}
+        pod["volumes"].append({"name": "videos", "persistentVolumeClaim": claim})
     if spec.runtime_class_name is not None:
         pod["runtimeClassName"] = spec.runtime_class_name
     if spec.node_selector:
@@ -322,6 +334,15 @@ def _evaluator_container(spec: JobSpec) -> dict[str, Any]:
         "HOME": "/tmp",
         "TMPDIR": "/tmp",
     }
+    mounts = [
+        {"name": "endpoint", "mountPath": ENDPOINT_MOUNT},
+        {"name": "scratch", "mountPath": "/tmp"},
+        {"name": "evaluation", "mountPath": EVALUATION_MOUNT, "readOnly": True},
+    ]
+    if spec.video_claim is not None:
+        env[VIDEO_DIR_ENV] = VIDEO_MOUNT
+        attempt_dir = f"{spec.submission_id}/{spec.attempt}"  # the server's layout
+        mounts.append({"name": "videos", "mountPath": VIDEO_MOUNT, "subPath": attempt_dir})
     return {
         "name": EVALUATOR,
         "image": spec.evaluator_image,
@@ -331,11 +352,7 @@ def _evaluator_container(spec: JobSpec) -> dict[str, Any]:
         "resources": {"requests": resources, "limits": dict(resources)},
         "securityContext": _security(EVALUATOR_UID),
         "terminationMessagePolicy": "FallbackToLogsOnError",
-        "volumeMounts": [
-            {"name": "endpoint", "mountPath": ENDPOINT_MOUNT},
-            {"name": "scratch", "mountPath": "/tmp"},
-            {"name": "evaluation", "mountPath": EVALUATION_MOUNT, "readOnly": True},
-        ],
+        "volumeMounts": mounts,
     }
 
 

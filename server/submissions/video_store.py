@@ -1,0 +1,82 @@
+"""Episode video files on the server: ``<video_dir>/<submission>/<attempt>/<name>.mp4``.
+
+Workers upload them through ``/internal/v1`` (`store_video`); on Kubernetes the evaluation
+Jobs write them into the same layout on a shared volume. A file's name is the one the
+evaluator gives it (`evaluator.video.video_name`): it is checked against that pattern, never
+used as a path of its own, and a submission's videos are only ever looked up by names
+computed from its result document. Only the current attempt's directory is read; storing a
+video of an attempt removes those of its earlier attempts (a re-run replaces them).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from evaluator.video import VIDEO_NAME
+from server.kit.errors import AppError, Invalid
+
+MEDIA_TYPE = "video/mp4"
+
+
+class VideoTooLarge(AppError):
+    status = 413
+    code = "too_large"
+
+
+class NotAVideo(AppError):
+    status = 415
+    code = "unsupported_media_type"
+
+
+@dataclass(frozen=True)
+class VideoStore:
+    """The video directory of one server, and what it accepts."""
+
+    root: Path
+    max_bytes: int
+    max_per_attempt: int
+
+    def attempt_dir(self, *, submission_id: int, attempt: int) -> Path:
+        """Where an attempt's videos are (both ids are integers: no name from input)."""
+        return self.root / str(int(submission_id)) / str(int(attempt))
+
+    def path(self, *, submission_id: int, attempt: int, name: str) -> Path | None:
+        """The stored file of that name, or None (also for a name that is not a video's)."""
+        if not VIDEO_NAME.match(name):
+            return None
+        path = self.attempt_dir(submission_id=submission_id, attempt=attempt) / name
+        return path if path.is_file() else None
+
+    def store(self, *, submission_id: int, attempt: int, name: str, data: bytes) -> None:
+        """Keep one uploaded video, replacing a file of the same name; Invalid, VideoTooLarge
+        or NotAVideo when the upload is not one."""
+        if not VIDEO_NAME.match(name):
+            raise Invalid(f"{name!r} is not a video name (condition--Task-vN--epK.mp4)")
+        if len(data) > self.max_bytes:
+            raise VideoTooLarge(f"the video has {len(data)} bytes, at most {self.max_bytes}")
+        if data[4:8] != b"ftyp":  # an ISO media file starts with its `ftyp` box
+            raise NotAVideo("the upload is not an MP4 file")
+        directory = self.attempt_dir(submission_id=submission_id, attempt=attempt)
+        self._remove_other_attempts(submission_id=submission_id, attempt=attempt)
+        directory.mkdir(parents=True, exist_ok=True)
+        final = directory / name
+        stored = [p for p in directory.iterdir() if p.name != name and p.suffix == ".mp4"]
+        if not final.exists() and len(stored) >= self.max_per_attempt:
+            raise VideoTooLarge(f"an attempt may store at most {self.max_per_attempt} videos")
+        tmp = directory / f"{name}.part"
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, final)
+
+    def _remove_other_attempts(self, *, submission_id: int, attempt: int) -> None:
+        parent = self.root / str(int(submission_id))
+        if not parent.is_dir():
+            return
+        for child in parent.iterdir():
+            if child.name != str(attempt):
+                shutil.rmtree(child, ignore_errors=True)

@@ -1,0 +1,58 @@
+"""Episode videos of an attempt: recorded by the evaluator into a directory the worker owns,
+then uploaded to the server through ``/internal/v1`` (docs/videos.md).
+
+The directory is private to this worker (mode 0700, under its data directory) and never given to
+the policy: a `local:` policy runs in its own process with no word of it, a container gets no
+mount of it. Only files named as the evaluator names them are sent; the server checks names,
+sizes and content again.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from evaluator.results import EvaluationResult
+from evaluator.video import VIDEO_NAME, video_name
+from worker.server_api import ServerAPI, ServerUnavailable, WorkerRefused
+from worker.settings import WorkerSettings
+
+log = logging.getLogger(__name__)
+
+
+@contextmanager
+def recording_dir(settings: WorkerSettings, *, submission_id: int, attempt: int) -> Iterator[Path]:
+    """A fresh private directory for one attempt's videos, removed when the attempt ends."""
+    parent = settings.data_dir / "recording"
+    parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+    directory = Path(tempfile.mkdtemp(prefix=f"{submission_id}-{attempt}-", dir=parent))
+    try:
+        yield directory
+    finally:
+        shutil.rmtree(directory, ignore_errors=True)
+
+
+def upload_videos(
+    api: ServerAPI, *, submission_id: int, attempt: int, result: EvaluationResult, directory: Path
+) -> EvaluationResult:
+    """Send the result's videos to the server; the result, its videos named by file name only
+    (the worker's paths mean nothing elsewhere). A video that cannot be sent is logged and
+    left out: the evaluation's result does not depend on it."""
+    sent = []
+    for video in result.videos:
+        name = video_name(condition=video.condition, env_id=video.env_id, episode=video.episode)
+        path = directory / name
+        if not VIDEO_NAME.match(name) or not path.is_file() or api.stop.is_set():
+            continue
+        try:
+            if not api.upload_video(submission_id, attempt, path):
+                break  # the attempt is no longer current: neither are its videos
+        except (ServerUnavailable, WorkerRefused, RuntimeError, OSError) as exc:
+            log.warning("video %s of submission %s not stored: %s", name, submission_id, exc)
+            continue
+        sent.append(video.model_copy(update={"path": name}))
+    return result.model_copy(update={"videos": sent})
