@@ -64,12 +64,3 @@ def serving(app: FastAPI) -> Iterator[str]:
     finally:
         server.should_exit = True
         thread.join(timeout=30)
-
-
-@pytest.fixture
-def artefacts(tmp_path: Path) -> Path:
-    """Where screenshots go: $MANIEVAL_ARTEFACTS/web, or the test's tmp dir."""
-    root = os.environ.get("MANIEVAL_ARTEFACTS")
-    path = Path(root) / "web" if root else tmp_path / "screenshots"
-    path.mkdir(parents=True, exist_ok=True)
-    return path

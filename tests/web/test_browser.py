@@ -118,14 +118,6 @@ def server(tmp_path: Path) -> Iterator[Server]:
         worker.stop(timeout=30)
 
 
-@pytest.fixture
-def artefacts(tmp_path: Path) -> Path:
-    root = os.environ.get("MANIEVAL_ARTEFACTS")
-    path = Path(root) / "web" if root else tmp_path / "screenshots"
-    path.mkdir(parents=True, exist_ok=True)
-    return path
-
-
 def test_register_token_submit_follow_live_and_find_it_on_the_leaderboard(
     server: Server, artefacts: Path
 ) -> None:

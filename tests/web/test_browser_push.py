@@ -31,14 +31,6 @@ def embedded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Embedded]:
         yield service
 
 
-@pytest.fixture
-def artefacts(tmp_path: Path) -> Path:
-    root = os.environ.get("MANIEVAL_ARTEFACTS")
-    path = Path(root) / "web" if root else tmp_path / "screenshots"
-    path.mkdir(parents=True, exist_ok=True)
-    return path
-
-
 def podman(*args: str, stdin: str | None = None, env: dict[str, str]) -> str:
     done = subprocess.run(
         ["podman", *args],

@@ -33,15 +33,7 @@ from server.leaderboard.service import refresh
 from server.models import Challenge, State
 from server.submissions.reports import report_final, report_state
 from tests.factories import RecordingQueue, make_user, queue_submission
-from tests.web.browser_support import (
-    CHROMIUM,
-    CHROMIUM_ARGS,
-    artefacts,
-    require_chromium,
-    serving,
-)
-
-__all__ = ["artefacts"]  # the fixture, imported for this module's tests
+from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving
 
 SUITE = load_suite("maniskill-core")
 TASKS = [t.env_id for t in SUITE.tasks]

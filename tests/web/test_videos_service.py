@@ -9,7 +9,6 @@ steps) keep the rendering cost low.
 
 from __future__ import annotations
 
-import os
 import socket
 import time
 from collections.abc import Iterator
@@ -226,15 +225,6 @@ def test_the_owner_plays_the_episode_on_the_submission_page(recorded: Recorded, 
         page.screenshot(path=str(artefacts / "submission-videos.png"), full_page=True)
         browser.close()
     assert problems == []
-
-
-@pytest.fixture
-def artefacts(tmp_path: Path) -> Path:
-    """Where the screenshot goes: $MANIEVAL_ARTEFACTS/web, or the test's tmp dir."""
-    root = os.environ.get("MANIEVAL_ARTEFACTS")
-    path = Path(root) / "web" if root else tmp_path / "screenshots"
-    path.mkdir(parents=True, exist_ok=True)
-    return path
 
 
 def test_nothing_is_left_in_the_workers_recording_directory(recorded: Recorded):
