@@ -80,11 +80,7 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
         ).all()
         for team_id in sorted(t for t in teams if t is not None):
             _refresh_team(db, phase_id=phase_id, team_id=team_id)
-    db.execute(
-        update(Phase)
-        .where(Phase.id == phase_id)
-        .values(leaderboard_version=Phase.leaderboard_version + 1)
-    )
+    _moved(db, phase_id)
     db.flush()
 
 
@@ -199,11 +195,7 @@ def rebuild(db: DB, *, challenge_id: int) -> None:
         ).all()
         for user_id in sorted(users):
             refresh(db, phase_id=phase_id, user_id=user_id)
-        db.execute(
-            update(Phase)
-            .where(Phase.id == phase_id)
-            .values(leaderboard_version=Phase.leaderboard_version + 1)
-        )
+        _moved(db, phase_id)
     db.flush()
 
 
@@ -238,3 +230,12 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
         # The score's 95% interval: Wilson over the first condition's episodes pooled.
         "score_interval": list(wilson_interval(successes, episodes)) if rows else None,
     }
+
+
+def _moved(db: DB, phase_id: int) -> None:
+    """The phase's board changed: readers keyed on its version read it again."""
+    db.execute(
+        update(Phase)
+        .where(Phase.id == phase_id)
+        .values(leaderboard_version=Phase.leaderboard_version + 1)
+    )
