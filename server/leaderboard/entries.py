@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import and_, delete, or_, select, update
+from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session as DB
 
 from evaluator.stats import wilson_interval
@@ -67,9 +67,9 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
     )
     if username is None:
         return
-    teams: list[int] = []
+    _refresh_user(db, phase_id=phase_id, user_id=user_id, username=username, team_mode=team_mode)
     if team_mode:
-        made_in = db.scalars(
+        teams = db.scalars(
             select(Submission.team_id)
             .where(
                 Submission.phase_id == phase_id,
@@ -78,43 +78,10 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
             )
             .distinct()
         ).all()
-        teams = sorted(t for t in made_in if t is not None)
-    before = _shown(db, phase_id=phase_id, user_id=user_id, team_ids=teams)
-    _refresh_user(db, phase_id=phase_id, user_id=user_id, username=username, team_mode=team_mode)
-    for team_id in teams:
-        _refresh_team(db, phase_id=phase_id, team_id=team_id)
+        for team_id in sorted(t for t in teams if t is not None):
+            _refresh_team(db, phase_id=phase_id, team_id=team_id)
+    _moved(db, phase_id)
     db.flush()
-    # Most finished submissions do not beat their owner's best: the board then stays as it
-    # was, and so does its version, which readers key their copies on.
-    if _shown(db, phase_id=phase_id, user_id=user_id, team_ids=teams) != before:
-        _moved(db, phase_id)
-        db.flush()
-
-
-def _shown(db: DB, *, phase_id: int, user_id: int, team_ids: list[int]) -> list[tuple[Any, ...]]:
-    """Everything a board shows of the user's own rows and of these teams' rows."""
-    e = LeaderboardEntry
-    whose = or_(and_(e.user_id == user_id, e.team_id.is_(None)), e.team_id.in_(team_ids))
-    rows = db.execute(
-        select(
-            e.submission_id,
-            e.owner_key,
-            e.team_id,
-            e.team_name,
-            e.team_display_name,
-            e.baseline,
-            e.score,
-            e.submitted_at,
-            e.username,
-            e.method,
-            e.paper_url,
-            e.code_url,
-            e.summary,
-        )
-        .where(e.phase_id == phase_id, whose)
-        .order_by(e.submission_id, e.team_id)
-    ).all()
-    return [tuple(row) for row in rows]
 
 
 def _refresh_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mode: bool) -> None:
@@ -213,12 +180,7 @@ def release_team(db: DB, *, team_id: int) -> None:
     made = db.execute(
         select(Submission.phase_id, Submission.user_id).where(Submission.team_id == team_id)
     ).all()
-    shown_in = db.scalars(
-        select(LeaderboardEntry.phase_id).where(LeaderboardEntry.team_id == team_id)
-    ).all()
     db.execute(delete(LeaderboardEntry).where(LeaderboardEntry.team_id == team_id))
-    for phase_id in sorted(set(shown_in)):  # its rows went: those boards changed
-        _moved(db, phase_id)
     for phase_id, user_id in sorted(set(made)):
         refresh(db, phase_id=phase_id, user_id=user_id)
 

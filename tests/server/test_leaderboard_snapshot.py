@@ -5,7 +5,7 @@ reader never waits for another's read of a newer version."""
 from __future__ import annotations
 
 from fastapi.testclient import TestClient
-from sqlalchemy import select, update
+from sqlalchemy import update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.leaderboard.snapshot import Snapshots
@@ -76,24 +76,3 @@ def test_while_one_reader_reads_a_new_version_the_others_serve_the_last_one(
     assert boards.current(sessions, slug="server-tiny", phase="dev") is held
     boards._reading.clear()
     assert boards.current(sessions, slug="server-tiny", phase="dev").version == held.version + 1
-
-
-def test_the_version_moves_only_when_the_board_changes(db: Session) -> None:
-    challenge = make_challenge(db, quota_per_day=50, quota_concurrent=50)
-    user = make_user(db, "ada")
-
-    def finish(successes: list[bool]) -> int:
-        s = queue_submission(db, user, challenge)
-        s.public = True
-        db.commit()
-        assert report_state(db, s.id, 1, State.LAUNCHING, "starting")
-        assert report_state(db, s.id, 1, State.RUNNING, "evaluating")
-        assert report_final(db, s.id, 1, State.SUCCEEDED, "done", result=result_doc(successes))
-        db.commit()
-        return db.scalars(select(Phase.leaderboard_version).where(Phase.name == "dev")).one()
-
-    first = finish([True, False])
-    worse = finish([False, False])  # does not beat ada's best: her row stays as it was
-    better = finish([True, True])  # does
-    assert worse == first
-    assert better == first + 1
