@@ -16,7 +16,7 @@ import numpy as np
 from evaluator.plan import TaskRun
 from evaluator.results import Video
 
-VIDEO_NAME = re.compile(r"^[a-z0-9_\-]{1,100}--[A-Za-z0-9_\-]{1,100}-v\d{1,6}--ep\d{1,6}\.mp4$")
+VIDEO_NAME = re.compile(r"^[a-z0-9_\-]{1,100}--[A-Za-z0-9_\-]{1,100}-v\d{1,6}--ep\d{1,6}\.mp4\Z")
 """What a video's file name looks like: derived from its run, never from input."""
 FFMPEG_OPTIONS = ("-movflags", "+faststart", "-preset", "veryfast")
 

@@ -49,7 +49,8 @@ log = logging.getLogger(__name__)
 
 RETRYABLE_STATUS = frozenset({429, 500, 502, 503, 504})
 WAIT_CAP_S = 10.0
-VIDEO_PATIENCE_S = 60.0  # videos are a view of the result: not worth holding an attempt up
+VIDEO_PATIENCE_S = 15.0  # videos are a view of the result: not worth holding an attempt up
+# (no heartbeat goes out meanwhile; the first video that cannot be stored ends the uploads)
 
 
 class ServerUnavailable(Exception):

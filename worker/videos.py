@@ -41,18 +41,23 @@ def upload_videos(
 ) -> EvaluationResult:
     """Send the result's videos to the server; the result, its videos named by file name only
     (the worker's paths mean nothing elsewhere). A video that cannot be sent is logged and
-    left out: the evaluation's result does not depend on it."""
+    left out, and so are the rest: the server is failing to store them, and the result, which
+    does not depend on them, must not wait (no heartbeat goes out meanwhile)."""
     sent = []
     for video in result.videos:
         name = video_name(condition=video.condition, env_id=video.env_id, episode=video.episode)
         path = directory / name
-        if not VIDEO_NAME.match(name) or not path.is_file() or api.stop.is_set():
+        if not VIDEO_NAME.match(name) or path.is_symlink() or not path.is_file():
             continue
+        if api.stop.is_set():
+            break
         try:
             if not api.upload_video(submission_id, attempt, path):
                 break  # the attempt is no longer current: neither are its videos
         except (ServerUnavailable, WorkerRefused, RuntimeError, OSError) as exc:
-            log.warning("video %s of submission %s not stored: %s", name, submission_id, exc)
-            continue
+            log.warning(
+                "videos of submission %s not stored (from %s on): %s", submission_id, name, exc
+            )
+            break
         sent.append(video.model_copy(update={"path": name}))
     return result.model_copy(update={"videos": sent})

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,16 +45,24 @@ class VideoStore:
         return self.root / str(int(submission_id)) / str(int(attempt))
 
     def path(self, *, submission_id: int, attempt: int, name: str) -> Path | None:
-        """The stored file of that name, or None (also for a name that is not a video's)."""
-        if not VIDEO_NAME.match(name):
+        """The stored file of that name, or None (also for a name that is not a video's, and
+        for a link: on Kubernetes the evaluation pods write into this directory, and a link
+        planted there must not serve a file from elsewhere)."""
+        if not VIDEO_NAME.fullmatch(name):
             return None
         path = self.attempt_dir(submission_id=submission_id, attempt=attempt) / name
-        return path if path.is_file() else None
+        try:
+            mode = path.lstat().st_mode
+        except OSError:
+            return None
+        if not stat.S_ISREG(mode) or not path.resolve().is_relative_to(self.root.resolve()):
+            return None
+        return path
 
     def store(self, *, submission_id: int, attempt: int, name: str, data: bytes) -> None:
         """Keep one uploaded video, replacing a file of the same name; Invalid, VideoTooLarge
         or NotAVideo when the upload is not one."""
-        if not VIDEO_NAME.match(name):
+        if not VIDEO_NAME.fullmatch(name):
             raise Invalid(f"{name!r} is not a video name (condition--Task-vN--epK.mp4)")
         if len(data) > self.max_bytes:
             raise VideoTooLarge(f"the video has {len(data)} bytes, at most {self.max_bytes}")

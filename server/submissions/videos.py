@@ -54,8 +54,9 @@ def video_store(settings: Settings) -> VideoStore:
 
 
 def videos_of(*, submission: Submission, store: VideoStore) -> list[VideoOut]:
-    """The videos stored for the submission's current attempt that its result lists."""
-    if not submission.result:
+    """The videos stored for the submission's current attempt that its result lists; none in a
+    phase whose seeds are secret (its episodes are hidden scenes, the same for everyone)."""
+    if not submission.result or not submission.phase.public_seeds:
         return []
     try:
         result = EvaluationResult.model_validate(submission.result)

@@ -99,7 +99,10 @@ def assignment(db: DB, *, submission_id: int, attempt: int, seed_secret: bytes) 
     if submission.attempt != attempt or submission.state not in (State.LAUNCHING, State.RUNNING):
         raise Conflict(f"attempt {attempt} of submission {submission_id} is not running")
     suite = suite_of(submission.challenge)
-    plan = build_plan(suite, submission.phase.name, secret=seed_secret)
+    # A secret-seed phase's episodes are the same hidden scenes for every entrant: a video
+    # would show them (from the reset frame on) to whoever sees the submission.
+    recorded = None if submission.phase.public_seeds else 0
+    plan = build_plan(suite, submission.phase.name, secret=seed_secret, videos=recorded)
     return Assignment(
         submission_id=submission_id,
         attempt=attempt,

@@ -145,3 +145,34 @@ def test_the_store_checks_what_it_keeps(tmp_path: Path):
     with pytest.raises(NotAVideo):
         store.store(submission_id=1, attempt=1, name=NAME, data=b"x" * 100)
     assert not (tmp_path / "1").exists()
+
+
+def test_a_link_planted_in_the_video_directory_serves_nothing(tmp_path: Path):
+    # On Kubernetes evaluation pods write into this directory: a link there must not serve a
+    # file from elsewhere, not even under a video's name.
+    store = VideoStore(tmp_path / "videos", max_bytes=1 << 20, max_per_attempt=10)
+    secret = tmp_path / "signing-key.pem"
+    secret.write_text("-----BEGIN PRIVATE KEY-----")
+    attempt = store.attempt_dir(submission_id=5, attempt=1)
+    attempt.mkdir(parents=True)
+    (attempt / NAME).symlink_to(secret)
+    assert store.path(submission_id=5, attempt=1, name=NAME) is None
+    assert store.path(submission_id=5, attempt=1, name=NAME + "\n") is None
+
+
+def test_a_secret_seed_phase_records_no_video(db: Session):
+    from server.submissions.states import transition
+    from server.submissions.work import assignment
+
+    challenge = make_challenge(db, quota_concurrent=2)
+    challenge.suite_yaml += "\nvideos: 1\n"  # the suite asks for videos in every phase
+    user = make_user(db, "ada")
+    made = {
+        phase: queue_submission(db, user, challenge, phase=phase).id for phase in ("dev", "test")
+    }
+    db.commit()
+    for phase, recorded in (("dev", 1), ("test", 0)):
+        assert transition(db, made[phase], 1, State.LAUNCHING, "starting")
+        db.commit()
+        plan = assignment(db, submission_id=made[phase], attempt=1, seed_secret=b"k" * 32).plan
+        assert plan.videos == recorded, phase

@@ -58,7 +58,8 @@ class Recorded:
     owner: dict[str, str]  # alice's API token header
     stranger: dict[str, str]  # bob's
     private_dev: int  # alice's, private, public seeds
-    public_test: int  # alice's, public, secret seeds
+    public_dev: int  # alice's, public, public seeds
+    public_test: int  # alice's, public, secret seeds: recorded nothing
 
 
 def free_port() -> int:
@@ -115,9 +116,9 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Recorded]:
         with httpx.Client(base_url=service.url, timeout=60) as client:
             owner, stranger = token(client, "alice"), token(client, "bob")
             ids = []
-            for phase, public in (("dev", False), ("test", True)):
+            for phase, public in (("dev", False), ("dev", True), ("test", True)):
                 body = {"challenge": "video-tiny", "phase": phase, "image": "local:scripted"}
-                body |= {"public": public} | (METHOD if phase == "dev" else {})
+                body |= {"public": public} | (METHOD if not public else {})
                 r = client.post(f"{API}/submissions", headers=owner, json=body)
                 assert r.status_code == 202, r.text
                 ids.append(r.json()["id"])
@@ -163,7 +164,8 @@ def test_videos_are_shown_as_the_submission_is_owner_always_others_when_public(
     recorded: Recorded,
 ):
     private = f"{API}/submissions/{recorded.private_dev}/videos"
-    public = f"{API}/submissions/{recorded.public_test}/videos"
+    public = f"{API}/submissions/{recorded.public_dev}/videos"
+    secret = f"{API}/submissions/{recorded.public_test}/videos"
     with httpx.Client(base_url=recorded.url, timeout=60) as client:
         r = client.get(f"{private}/{NAME}", headers=recorded.owner)
         assert r.status_code == 200
@@ -173,10 +175,15 @@ def test_videos_are_shown_as_the_submission_is_owner_always_others_when_public(
             assert client.get(private, headers=who).status_code == 404
             assert client.get(f"{private}/{NAME}", headers=who).status_code == 404
             [video] = client.get(public, headers=who).json()["videos"]
-            assert video["seed"] is None  # a secret-seed phase never shows its seeds
+            assert video["seed"] == 0
             assert client.get(video["url"], headers=who).status_code == 200
-        page = client.get(f"/submissions/{recorded.public_test}").text
+        page = client.get(f"/submissions/{recorded.public_dev}").text
         assert f'src="{public}/{NAME}"' in page
+        # A secret-seed phase's episodes are hidden scenes, the same for every entrant: none
+        # is recorded, not even for its owner.
+        for who in ({}, recorded.stranger, recorded.owner):
+            assert client.get(secret, headers=who).json()["videos"] == []
+            assert client.get(f"{secret}/{NAME}", headers=who).status_code == 404
         for name in ("..%2F..%2Fmanieval.db", "x.mp4", "nominal--PickCube-v1--ep1.mp4"):
             assert client.get(f"{private}/{name}", headers=recorded.owner).status_code == 404
 
