@@ -60,6 +60,7 @@ class Snapshot:
 
     slug: str
     phase: str
+    phase_id: int  # a phase removed and made again under its name starts at version 0 again
     version: int
     rows: list[Ranked]
     tasks: list[str]
@@ -177,7 +178,7 @@ class Snapshots:
             held = self._boards.get(key)
         with sessions() as db:
             phase_id, version = board_version(db, slug=slug, phase=phase)  # 404/422 first
-            if held is not None and held.version == version:
+            if held is not None and (held.phase_id, held.version) == (phase_id, version):
                 held.checked = time.monotonic()
                 return held
             with self._lock:
@@ -191,7 +192,7 @@ class Snapshots:
                     self._reading.discard(key)
         with self._lock:
             kept = self._boards.get(key)
-            if kept is None or kept.version <= read.version:
+            if kept is None or kept.phase_id != read.phase_id or kept.version <= read.version:
                 self._boards[key] = read
         return read
 
@@ -217,4 +218,4 @@ def _read(db: DB, *, slug: str, phase: str, phase_id: int, version: int) -> Snap
         )
     ]
     tasks, conditions = column_order(db, slug=slug)
-    return Snapshot(slug, phase, version, rows, tasks, conditions)
+    return Snapshot(slug, phase, phase_id, version, rows, tasks, conditions)
