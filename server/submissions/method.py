@@ -7,14 +7,21 @@ host are kept, so no `javascript:` or `data:` link can reach a page.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from urllib.parse import urlsplit
 
 from server.kit.errors import Invalid
-from server.kit.schemas import text_problem
+from server.kit.schemas import LINE_PATTERN, text_problem
 
 METHOD_MAX = 100
 URL_MAX = 500
+_BIDI = re.compile("[\u202a-\u202e\u2066-\u2069]")
+"""Directional embeddings, overrides and isolates: in a name shown inside a board's cell or a
+CSV line they would reorder what follows it."""
+assert LINE_PATTERN.endswith("]*$")
+METHOD_PATTERN = LINE_PATTERN[: -len("]*$")] + "\\u202a-\\u202e\\u2066-\\u2069]*$"
+"""One line of text without direction controls: what `Method.checked` keeps (documented)."""
 URL_PATTERN = r"^$|^https?://[^\s/?#]+[^\s]*$"
 """An absolute http(s) URL with a host, or empty (no link); what `link_problem` checks."""
 
@@ -32,8 +39,8 @@ def link_problem(url: str) -> str | None:
         parts.port  # noqa: B018 - raises on a port that is not a number
     except ValueError:
         return "not a URL"
-    if parts.scheme not in ("http", "https") or not parts.hostname:
-        return "an absolute http:// or https:// URL"
+    if not url.startswith(("http://", "https://")) or not parts.hostname:
+        return "an absolute http:// or https:// URL"  # lower case, as the API's pattern says
     return None
 
 
@@ -51,6 +58,8 @@ class Method:
         name = None if self.name is None else self.name.strip()
         if name is not None and (problem := text_problem(name)):
             fields["method"] = problem
+        elif name is not None and _BIDI.search(name):
+            fields["method"] = "contains a text direction control (U+202A-U+202E, U+2066-U+2069)"
         elif name is not None and len(name) > METHOD_MAX:
             fields["method"] = f"at most {METHOD_MAX} characters"
         links = {}

@@ -4,14 +4,17 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Annotated
 
 from pydantic import BaseModel, Field
 
 from server.kit.schemas import InBody
 from server.models import State
-from server.submissions.method import METHOD_MAX, URL_MAX, URL_PATTERN
+from server.submissions.method import METHOD_MAX, METHOD_PATTERN, URL_MAX, URL_PATTERN
 
 _METHOD = "the method's name, shown on the leaderboard"
+MethodName = Annotated[str, Field(json_schema_extra={"pattern": METHOD_PATTERN})]
+"""Documents what `Method.checked` refuses (its check runs in the service, for forms too)."""
 _PAPER = "an absolute http(s) link to the method's paper"
 _CODE = "an absolute http(s) link to the method's code"
 
@@ -22,7 +25,7 @@ class SubmitIn(InBody):
     image: str = Field(max_length=512)
     description: str = Field(default="", max_length=2000)
     public: bool = True
-    method: str | None = Field(default=None, max_length=METHOD_MAX, description=_METHOD)
+    method: MethodName | None = Field(default=None, max_length=METHOD_MAX, description=_METHOD)
     paper_url: str | None = Field(
         default=None, max_length=URL_MAX, pattern=URL_PATTERN, description=_PAPER
     )
@@ -36,7 +39,7 @@ class SubmissionPatch(InBody):
     hidden: bool | None = Field(default=None, description="admins only")
     baseline: bool | None = Field(default=None, description="admins only")
     description: str | None = Field(default=None, max_length=2000)
-    method: str | None = Field(
+    method: MethodName | None = Field(
         default=None, max_length=METHOD_MAX, description=_METHOD + '; "" removes it'
     )
     paper_url: str | None = Field(

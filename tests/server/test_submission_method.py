@@ -27,6 +27,7 @@ REFUSED = [
     "https://example.org:port/",
     "https://example.org/\u0000",
     "https://example.org/" + "a" * 500,
+    "HTTPS://example.org/paper",  # the API's pattern is lower case: so is the form's check
 ]
 
 
@@ -46,6 +47,9 @@ def test_an_edit_clears_with_empty_text_and_leaves_what_it_does_not_name() -> No
     with pytest.raises(Invalid) as refused:
         Method(name="x" * 101, paper_url="javascript:1", code_url=PAPER).checked()
     assert set(refused.value.fields) == {"method", "paper_url"}
+    with pytest.raises(Invalid) as reordering:
+        Method(name="ACT\u202e1.0 erocs").checked()  # would show the rest of a cell reversed
+    assert set(reordering.value.fields) == {"method"}
 
 
 @pytest.fixture
@@ -89,6 +93,9 @@ def test_the_document_states_the_link_grammar(client: TestClient) -> None:
         paper = schemas[name]["properties"]["paper_url"]
         variants = paper.get("anyOf", [paper])
         assert any(v.get("pattern", "").startswith("^$|^https?://") for v in variants), paper
+        method = schemas[name]["properties"]["method"]
+        patterns = [v.get("pattern", "") for v in method.get("anyOf", [method])]
+        assert any("\\u202e" in p for p in patterns), method  # direction controls refused
 
 
 def test_the_cli_refuses_a_link_before_anything_is_uploaded() -> None:
