@@ -23,7 +23,14 @@ T = TypeVar("T")
 # document holds no raw control character.
 _LINE_FORBIDDEN = r"\x00-\x1f\ud800-\udfff\ufffe\uffff"
 _TEXT_FORBIDDEN = r"\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff"
-LINE_PATTERN = rf"^[^{_LINE_FORBIDDEN}]*$"
+
+
+def line_pattern(also_forbidden: str = "") -> str:
+    """The pattern of one line of text, refusing these characters too (a character class)."""
+    return rf"^[^{_LINE_FORBIDDEN}{also_forbidden}]*$"
+
+
+LINE_PATTERN = line_pattern()
 """One line of text: no control character at all."""
 TEXT_PATTERN = rf"^[^{_TEXT_FORBIDDEN}]*$"
 """Multi-line text: tab, line feed and carriage return allowed, no other control character."""

@@ -12,15 +12,15 @@ from dataclasses import dataclass
 from urllib.parse import urlsplit
 
 from server.kit.errors import Invalid
-from server.kit.schemas import LINE_PATTERN, text_problem
+from server.kit.schemas import line_pattern, text_problem
 
 METHOD_MAX = 100
 URL_MAX = 500
-_BIDI = re.compile("[\u202a-\u202e\u2066-\u2069]")
+_BIDI_RANGES = r"\u202a-\u202e\u2066-\u2069"  # escaped: the document holds no raw control
+_BIDI = re.compile(f"[{_BIDI_RANGES}]")
 """Directional embeddings, overrides and isolates: in a name shown inside a board's cell or a
 CSV line they would reorder what follows it."""
-assert LINE_PATTERN.endswith("]*$")
-METHOD_PATTERN = LINE_PATTERN[: -len("]*$")] + "\\u202a-\\u202e\\u2066-\\u2069]*$"
+METHOD_PATTERN = line_pattern(_BIDI_RANGES)
 """One line of text without direction controls: what `Method.checked` keeps (documented)."""
 URL_PATTERN = r"^$|^https?://[^\s/?#]+[^\s]*$"
 """An absolute http(s) URL with a host, or empty (no link); what `link_problem` checks."""
