@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-import multiprocessing
 import platform
-import queue
 from collections.abc import Callable
-from concurrent.futures import Future, ProcessPoolExecutor
 from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
-from typing import Any
 
 from evaluator.plan import EvaluationPlan
+from evaluator.pool import can_start_processes, leased
 from evaluator.results import (
     BudgetUse,
     ConditionResult,
@@ -25,7 +22,6 @@ from evaluator.results import (
 from evaluator.runner import (
     EpisodeCallback,
     RunOptions,
-    Shard,
     ShardOutcome,
     failed_episode,
     make_shards,
@@ -33,15 +29,13 @@ from evaluator.runner import (
 )
 from evaluator.sources import PolicySource
 
-_worker_events: Any = None
-_worker_stop: Any = None
-
 
 def evaluate(
     plan: EvaluationPlan,
     source: PolicySource,
     *,
     workers: int = 1,
+    warm: bool = False,
     video_dir: Path | None = None,
     on_episode: EpisodeCallback | None = None,
     should_stop: Callable[[], bool] = lambda: False,
@@ -51,12 +45,18 @@ def evaluate(
     `should_stop` (a cancel) is polled between steps and every 0.1 s while the policy is
     answering, so a run stops mid-episode, even mid-call; the episode in progress and those not
     started are recorded as `not_run`.
+
+    One worker runs here, in this process, unless `warm`; otherwise the shards run in a warm
+    pool of `workers` evaluator processes (`evaluator.pool`), kept for the next evaluation.
+    A daemonic process (a Celery prefork child) may start none, and runs one worker here.
     """
     started = datetime.now(UTC)
     options = RunOptions(video_dir=video_dir)
     callback = on_episode or (lambda _run, _episode: None)
+    if not can_start_processes():
+        workers, warm = 1, False
     shards = make_shards(plan, workers)
-    if len(shards) == 1:
+    if workers == 1 and not warm:
         outcomes = [
             run_shard(
                 plan,
@@ -68,80 +68,9 @@ def evaluate(
             )
         ]
     else:
-        outcomes = _run_parallel(plan, source, shards, options, callback, should_stop)
+        with leased(workers) as pool:
+            outcomes = pool.run(plan, source, shards, options, callback, should_stop)
     return build_result(plan, source.describe(), outcomes, started=started)
-
-
-def _run_parallel(
-    plan: EvaluationPlan,
-    source: PolicySource,
-    shards: list[Shard],
-    options: RunOptions,
-    callback: EpisodeCallback,
-    should_stop: Callable[[], bool],
-) -> list[ShardOutcome]:
-    # spawn, not fork: torch and SAPIEN hold threads and GPU/Vulkan state that fork would copy.
-    context = multiprocessing.get_context("spawn")
-    events = context.Queue()
-    stop = context.Event()
-    pool = ProcessPoolExecutor(
-        max_workers=len(shards),
-        mp_context=context,
-        initializer=_init_worker,
-        initargs=(events, stop),
-    )
-    try:
-        futures = [pool.submit(_shard_in_worker, plan, source, shard, options) for shard in shards]
-        _pump_events(futures, events, callback, stop, should_stop)
-        return [future.result() for future in futures]
-    finally:
-        # Normally every shard has returned by now, its policy stopped: the worker processes'
-        # own exit (unloading torch and SAPIEN) need not delay the result, nor a cancel. If we
-        # got here by an exception, the stop makes the shards still running end soon.
-        stop.set()
-        pool.shutdown(wait=False, cancel_futures=True)
-
-
-def _pump_events(
-    futures: list[Future[ShardOutcome]],
-    events: Any,
-    callback: EpisodeCallback,
-    stop: Any,
-    should_stop: Callable[[], bool],
-) -> None:
-    while True:
-        if should_stop():
-            stop.set()
-        done = all(f.done() for f in futures)
-        try:
-            kind, run_index, payload = events.get(timeout=0.1)
-        except queue.Empty:
-            if done:
-                return
-            continue
-        if kind == "episode":
-            callback(run_index, EpisodeResult.model_validate(payload))
-        elif kind == "abort":
-            stop.set()
-
-
-def _init_worker(events: Any, stop: Any) -> None:
-    global _worker_events, _worker_stop
-    _worker_events, _worker_stop = events, stop
-
-
-def _shard_in_worker(
-    plan: EvaluationPlan, source: PolicySource, shard: Shard, options: RunOptions
-) -> ShardOutcome:
-    def report(run_index: int, episode: EpisodeResult) -> None:
-        _worker_events.put(("episode", run_index, episode.model_dump(mode="json")))
-
-    outcome = run_shard(
-        plan, source, shard, options=options, on_episode=report, should_stop=_worker_stop.is_set
-    )
-    if outcome.abort is not None:
-        _worker_events.put(("abort", outcome.abort[0], None))
-    return outcome
 
 
 def build_result(

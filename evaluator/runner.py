@@ -94,6 +94,25 @@ def task_spec(run: TaskRun, env: Any, step_limit: int) -> dict[str, Any]:
     }
 
 
+@dataclass
+class TaskEnv:
+    """A task run's environment, ready for its episodes."""
+
+    env: Any
+    runtime: ConditionRuntime
+    record: bool
+
+
+def open_task(
+    plan: EvaluationPlan, run_index: int, episodes: Sequence[tuple[int, int]], options: RunOptions
+) -> TaskEnv:
+    """Build the environment for these episodes of a task run (rendering if one is filmed)."""
+    run = plan.runs[run_index]
+    runtime = ConditionRuntime(run.condition)
+    record = options.video_dir is not None and any(plan.records(run, i) for i, _ in episodes)
+    return TaskEnv(make_env(run, runtime, render=record), runtime, record)
+
+
 def run_units(
     plan: EvaluationPlan,
     channel: PolicyChannel,
@@ -103,32 +122,34 @@ def run_units(
     options: RunOptions,
     on_episode: EpisodeCallback,
     should_stop: Callable[[], bool] = lambda: False,
+    first: TaskEnv | None = None,
 ) -> None:
-    """Run task runs' episodes through `channel`; PolicyFailure propagates after recording."""
-    for run_index, episodes in units:
-        if should_stop():
-            return
-        run = plan.runs[run_index]
-        runtime = ConditionRuntime(run.condition)
-        record = options.video_dir is not None and any(plan.records(run, i) for i, _ in episodes)
-        env = make_env(run, runtime, render=record)
+    """Run task runs' episodes through `channel`; PolicyFailure propagates after recording.
+    `first`, if given, is the first unit's environment, already built; it is closed here."""
+    for position, (run_index, episodes) in enumerate(units):
+        task = first if position == 0 else None
         try:
+            if should_stop():
+                return
+            if task is None:
+                task = open_task(plan, run_index, episodes, options)
             _run_task(
                 plan,
                 run_index,
-                run,
-                env,
-                runtime,
+                plan.runs[run_index],
+                task.env,
+                task.runtime,
                 channel,
                 episodes,
                 outcome,
                 options=options,
-                record=record,
+                record=task.record,
                 on_episode=on_episode,
                 should_stop=should_stop,
             )
         finally:
-            env.close()
+            if task is not None:
+                task.env.close()
 
 
 def _run_task(
@@ -239,10 +260,14 @@ def run_shard(
     )
     endpoint.should_stop = should_stop
     process = source.launch(endpoint=endpoint.address, socket_dir=endpoint.socket_dir)
+    first: TaskEnv | None = None
     try:
+        # Built while the policy process starts: the two start-ups overlap.
+        first = open_task(plan, *shard.units[0], options)
         endpoint.accept(timeout=limits.connect_timeout_s, alive=process.alive)
         endpoint.hello(timeout=limits.first_call_timeout_s)
         channel = RemoteChannel(endpoint, limits)
+        handed, first = first, None  # run_units closes it from here on
         run_units(
             plan,
             channel,
@@ -251,6 +276,7 @@ def run_shard(
             options=options,
             on_episode=on_episode,
             should_stop=should_stop,
+            first=handed,
         )
     except PolicyFailure as failure:
         if outcome.abort is None:  # it broke before the first episode: charge that episode
@@ -264,6 +290,8 @@ def run_shard(
     except Stopped:
         pass  # cancelled: the episode in progress, and those after it, are recorded not_run
     finally:
+        if first is not None:
+            first.env.close()
         outcome.policy_time_s = endpoint.policy_time_s
         code = process.exit_code()  # before stop(): our own SIGTERM is not the policy's exit
         endpoint.close()

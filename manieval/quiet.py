@@ -16,6 +16,8 @@ import warnings
 from pathlib import Path
 from typing import TextIO
 
+from evaluator.pool import setup_processes
+
 # Top-level packages whose warnings are theirs, not ours.
 THIRD_PARTY = ("mani_skill", "gymnasium", "gym", "sapien", "torch", "trimesh", "transforms3d")
 # The loggers they write to (ManiSkill's name has a trailing space).
@@ -81,6 +83,7 @@ def quiet_third_party(log_path: Path) -> logging.Handler:
             previous(message, category, filename, lineno, file, line)
 
     warnings.showwarning = show
+    setup_processes(quiet_third_party, log_path)  # the evaluator processes it starts, too
     return handler
 
 

@@ -50,6 +50,8 @@ def embedded_worker_settings(
         data_dir=settings.data_dir,
         allow_local_policies=settings.allow_local_policies,
     )
+    if worker.evaluation_processes == 0:  # never in the server's process: it would share its GIL
+        worker = worker.model_copy(update={"evaluation_processes": 1})
     if engine_url is None:
         return worker
     return worker.model_copy(update={"docker_engine_url": engine_url})

@@ -153,10 +153,13 @@ def _evaluate_recording(
 ) -> EvaluationResult | State | None:
     """`_evaluate`, with the plan's episode videos recorded and stored on the server before
     the final report (the page shows them as soon as the result is there)."""
+    processes = settings.evaluation_processes
     if plan.videos == 0:
-        return _evaluate(api, sid, attempt, plan, source)
+        return _evaluate(api, sid, attempt, plan, source, processes=processes)
     with recording_dir(settings, submission_id=sid, attempt=attempt) as directory:
-        result = _evaluate(api, sid, attempt, plan, source, video_dir=directory)
+        result = _evaluate(
+            api, sid, attempt, plan, source, processes=processes, video_dir=directory
+        )
         if not isinstance(result, EvaluationResult):
             return result
         return upload_videos(
@@ -171,10 +174,13 @@ def _evaluate(
     plan: EvaluationPlan,
     source: PolicySource,
     *,
+    processes: int,
     video_dir: Path | None = None,
 ) -> EvaluationResult | State | None:
     """The result, or the state the attempt was ended in elsewhere while it ran, or None when
-    the worker's stop interrupted it."""
+    the worker's stop interrupted it. With `processes`, the simulator runs in that many warm
+    evaluator processes (`evaluator.pool`), not in this one, whose other threads (the embedded
+    worker's, the server's) would share its Python lock; with 0, here."""
     from evaluator.evaluation import evaluate
 
     total = plan.episode_count()
@@ -229,7 +235,13 @@ def _evaluate(
     beat.start()
     try:
         result = evaluate(
-            plan, source, video_dir=video_dir, on_episode=report, should_stop=should_stop
+            plan,
+            source,
+            workers=max(processes, 1),
+            warm=processes > 0,
+            video_dir=video_dir,
+            on_episode=report,
+            should_stop=should_stop,
         )
     finally:
         finished.set()

@@ -57,6 +57,11 @@ class WorkerSettings(BaseSettings):
     docker_engine_url: str | None = None
     """Docker-API engine that runs policy images (Docker, or Podman's API service, e.g.
     ``unix:///run/manieval/podman.sock``); unset: image submissions end ``error``."""
+    evaluation_processes: int = Field(default=0, ge=0, le=64)
+    """Evaluator processes per evaluation: its episodes are sharded over this many warm
+    processes, started once and kept (docs/capacity.md, "Warm evaluator processes"). 0: in
+    the worker's own process (a Celery process that runs one evaluation at a time). The
+    embedded worker, whose threads share the server's process, uses at least 1."""
     policy_memory_mib: int = Field(default=2048, ge=64)
     policy_cpus: float = Field(default=1.0, gt=0)
 
