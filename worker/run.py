@@ -32,6 +32,7 @@ HEARTBEAT_INTERVAL_S = 1.0  # also how soon a cancel is seen mid-episode
 DEADLINE_GRACE_S = 120.0  # beyond the suite's budget, before the reconciler times a run out
 SIM_STEPS_PER_S = 20.0  # a slow machine's pace, for the evaluator's own share of the time
 SCENE_BUILD_S = 2.0  # each episode rebuilds its scene (evaluator/sim.py)
+FRAME_RENDER_S = 0.25  # a slow machine's time to render a video frame (45-100 ms on lavapipe)
 
 
 class NotRunnable(Exception):
@@ -135,9 +136,13 @@ def _interrupted(sid: int, attempt: int) -> None:
 
 def wall_clock_limit_s(plan: EvaluationPlan) -> float:
     """How long the whole attempt may take before the reconciler times it out: the policy's
-    budget (which counts only its own answers) plus the evaluator's own time, generously."""
+    budget (which counts only its own answers) plus the evaluator's own time, generously,
+    rendering the recorded episodes' frames included."""
     own = sum(
         len(run.seeds) * (run.max_episode_steps / SIM_STEPS_PER_S + SCENE_BUILD_S)
+        + sum(plan.records(run, i) for i in range(len(run.seeds)))
+        * (run.max_episode_steps + 1)
+        * FRAME_RENDER_S
         for run in plan.runs
     )
     return plan.limits.budget_s * 1.1 + own + DEADLINE_GRACE_S
