@@ -67,7 +67,10 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
     )
     if username is None:
         return
-    _refresh_user(db, phase_id=phase_id, user_id=user_id, username=username, team_mode=team_mode)
+    # The user's rows go first and come back last: a submission just flagged a baseline may
+    # still hold its team's row (the team's is recomputed in between), and one unflagged may
+    # still hold a baseline row of the user's.
+    _clear_user(db, phase_id=phase_id, user_id=user_id)
     if team_mode:
         teams = db.scalars(
             select(Submission.team_id)
@@ -80,11 +83,12 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
         ).all()
         for team_id in sorted(t for t in teams if t is not None):
             _refresh_team(db, phase_id=phase_id, team_id=team_id)
+    _fill_user(db, phase_id=phase_id, user_id=user_id, username=username, team_mode=team_mode)
     _moved(db, phase_id)
     db.flush()
 
 
-def _refresh_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mode: bool) -> None:
+def _clear_user(db: DB, *, phase_id: int, user_id: int) -> None:
     db.execute(
         delete(LeaderboardEntry).where(
             LeaderboardEntry.phase_id == phase_id,
@@ -92,6 +96,9 @@ def _refresh_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mo
             LeaderboardEntry.team_id.is_(None),
         )
     )
+
+
+def _fill_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mode: bool) -> None:
     eligible = db.scalars(
         select(Submission)
         .where(*_eligible(phase_id), Submission.user_id == user_id)
