@@ -13,9 +13,15 @@ sort, thousands of distinct URLs in a shuffled order, while `--writes-per-s` sub
 (each one refreshes a leaderboard row and moves the board on, as a worker's report does);
 `rotation` is the former figure: 10 JSON pages in turn, nothing written, all cache hits.
 
+How the server runs (`--server-workers`, default 2): as the product is deployed,
+k8s/base/api.yaml's two API replicas, each one `manieval serve` process (one uvicorn worker,
+at most one CPU) behind a Service that spreads connections over them: here two server processes
+on one port (SO_REUSEPORT), the kernel spreading wrk's connections. Each process keeps its own
+snapshots, as each replica does. `--server-workers 1` measures one process alone.
+
     .venv/bin/python bench/leaderboard_load.py [--users 10000] [--submissions 100000]
         [--duration 20] [--connections 16 ...] [--mix honest|rotation] [--writes-per-s 2]
-        [--server-workers 1 [--uvicorn-workers]] [--keep-db]
+        [--server-workers 2 [--uvicorn-workers]] [--keep-db]
 
 Needs wrk (Debian package ``wrk``) and the local Postgres (``MANIEVAL_BENCH_POSTGRES``, default
 ``postgresql+psycopg://postgres@127.0.0.1:5432/postgres``).
@@ -408,7 +414,12 @@ def main() -> None:
     parser.add_argument(
         "--writes-per-s", type=float, default=2.0, help="submissions finishing (honest mix)"
     )
-    parser.add_argument("--server-workers", type=int, default=1, help="uvicorn processes")
+    parser.add_argument(
+        "--server-workers",
+        type=int,
+        default=2,
+        help="server processes (2: the API replicas of k8s/base/api.yaml)",
+    )
     parser.add_argument(
         "--uvicorn-workers",
         action="store_true",

@@ -9,6 +9,7 @@ connections use `committed_sessions`, which truncates after the test instead. Pl
 
 from __future__ import annotations
 
+import gc
 import os
 import uuid
 from collections.abc import Iterator
@@ -29,6 +30,15 @@ from tests.factories import RecordingQueue, fake_resolve_for
 PG_ADMIN_URL = os.environ.get(
     "MANIEVAL_TEST_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 )
+
+
+@pytest.fixture(autouse=True)
+def _collectable_again() -> Iterator[None]:
+    """The server exempts what lives long from the cyclic garbage collector (`gc.freeze`, at
+    start-up and after a whole leaderboard read). In one test process apps and boards come and
+    go by the hundred: after each test, what was exempted is collectable again."""
+    yield
+    gc.unfreeze()
 
 
 def _require(what: str, exc: Exception) -> None:

@@ -15,9 +15,10 @@ from sqlalchemy.orm import Session as DB
 from server.challenges.charts import StepChart, best_over_time, step_chart
 from server.challenges.prose import markdown, markdown_inline, summary
 from server.challenges.service import all_challenges, get_challenge, shown_phase, suite_of
-from server.kit.deps import DBDep, services
+from server.kit.deps import DBDep
 from server.kit.pages import ViewerDep, render
 from server.leaderboard.columns import board_columns
+from server.leaderboard.pages import top_rows
 from server.leaderboard.service import baseline_points, record_points
 from server.models import Phase, utcnow
 from server.submissions.quota import quota_use
@@ -63,7 +64,7 @@ def challenge_page(
     quota = (
         quota_use(db, user=who.user, challenge=challenge, now=now) if who.user is not None else None
     )
-    board = services(request).leaderboards.page(db, phase_id=shown.id, page=1, per_page=TOP_ROWS)
+    board = top_rows(request, db, slug=challenge.slug, phase=shown.name, count=TOP_ROWS)
     suite = suite_of(challenge)
     return render(
         request,

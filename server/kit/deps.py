@@ -16,7 +16,7 @@ from server.kit import security
 from server.kit.errors import Forbidden, RateLimited, Unauthorized
 from server.kit.ratelimit import Rate, RateLimiter
 from server.kit.settings import Settings
-from server.leaderboard.service import LeaderboardCache
+from server.leaderboard.rendered import BoardPages
 from server.leaderboard.snapshot import Snapshots
 from server.models import Session, User
 from server.submissions.outbox import Dispatcher
@@ -34,9 +34,10 @@ class Services:
     limiter: RateLimiter
     resolve: Resolver
     dispatcher: Dispatcher
-    leaderboards: LeaderboardCache = field(default_factory=LeaderboardCache)
+    board_pages: BoardPages = field(default_factory=BoardPages)
+    """Rendered leaderboard page contents (server/leaderboard/pages.py)."""
     boards: Snapshots = field(init=False)
-    """Whole boards per phase for the leaderboard API (server/leaderboard/snapshot.py)."""
+    """Whole boards per phase for the leaderboard API and pages (server/leaderboard/snapshot.py)."""
 
     def __post_init__(self) -> None:
         self.boards = Snapshots(self.settings.leaderboard_max_age)

@@ -1,1 +1,1 @@
-"""Leaderboards: one stored row per participant and baseline, read by the rank index."""
+"""Leaderboards: one stored row per participant and baseline, kept whole per phase in memory."""

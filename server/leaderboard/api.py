@@ -38,9 +38,10 @@ async def leaderboard(
     `conditions` list the suite's in its order, which every row's dictionaries and the CSV's
     columns follow.
 
-    The most read page of the service: each phase's whole board is read once per version (at
-    most once every `MANIEVAL_LEADERBOARD_MAX_AGE` seconds while it changes) and every page,
-    size and format is cut from it, so a page costs neither a thread nor a query.
+    The most read page of the service: each phase's whole board is kept in memory, brought up
+    to date from the rows that changed (at most once every `MANIEVAL_LEADERBOARD_MAX_AGE`
+    seconds while it changes), and every page, size and format is cut from it, so a page
+    costs neither a thread nor a query.
     """
     svc = services(request)
     board = svc.boards.fresh(slug, phase)

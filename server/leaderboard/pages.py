@@ -1,40 +1,57 @@
-"""The leaderboard page: per-task success with intervals, stress conditions, sortable."""
+"""The leaderboard page: per-task success with intervals, stress conditions, sortable.
+
+Its rows are cut from the phase's snapshot (server/leaderboard/snapshot.py), the one the API
+serves from. Its content (everything under the site's header) is the same for every viewer,
+so it is rendered once per distinct content and kept in a bounded LRU (`BoardPages`); the
+header, which says who is logged in and carries their form token, is rendered per request.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
+from markupsafe import Markup
 from sqlalchemy.orm import Session as DB
 
-from server.challenges.service import get_challenge, shown_phase, suite_of
+from server.challenges.service import get_challenge, shown_phase
 from server.kit.deps import DBDep, services
-from server.kit.pages import ViewerDep, render
+from server.kit.pages import ViewerDep, render, templates
 from server.leaderboard.columns import board_columns
-from server.leaderboard.service import Row
-from server.models import Phase
+from server.leaderboard.service import Board, Row, suite_columns
+from server.leaderboard.snapshot import Snapshot
 
 router = APIRouter(include_in_schema=False)
 
 SORT_LIMIT = 2000  # rows a sorted view reads; boards are ranked by score beyond that
 
 
-def _value(row: Row, key: str) -> Any:
+def snapshot(request: Request, db: DB, *, slug: str, phase: str) -> Snapshot:
+    """The phase's board as the API serves it (confirmed in the caller's session when due)."""
+    boards = services(request).boards
+    return boards.fresh(slug, phase) or boards.current_in(db, slug=slug, phase=phase)
+
+
+def top_rows(request: Request, db: DB, *, slug: str, phase: str, count: int) -> Board:
+    """The board's first rows in rank order, and how many it has (the challenge page's)."""
+    board = snapshot(request, db, slug=slug, phase=phase)
+    return Board(rows=[board.row(i) for i in range(min(count, board.total))], total=board.total)
+
+
+def sort_value(key: str) -> Callable[[Row], Any]:
+    """What a row is sorted by under a column's sort key (None: it has no value there)."""
     kind, _, name = key.partition(":")
     if kind == "task":
-        return row.tasks.get(name, {}).get("success_rate")
+        return lambda row: row.tasks.get(name, {}).get("success_rate")
     if kind == "cond":
-        return row.conditions.get(name)
-    return {"score": row.score, "user": row.participant, "submitted": row.submitted_at}.get(kind)
-
-
-def sort_rows(rows: list[Row], key: str, descending: bool) -> list[Row]:
-    """Rows sorted by one column; rows without a value for it go last either way."""
-    present = [r for r in rows if _value(r, key) is not None]
-    missing = [r for r in rows if _value(r, key) is None]
-    present.sort(key=lambda r: _value(r, key), reverse=descending)
-    return present + missing
+        return lambda row: row.conditions.get(name)
+    return {
+        "score": lambda row: row.score,
+        "user": lambda row: row.participant,
+        "submitted": lambda row: row.submitted_at,
+    }[kind]
 
 
 @router.get("/challenges/{slug}/leaderboard")
@@ -52,43 +69,64 @@ def leaderboard_page(
     """The whole board: per-task success with intervals, stress conditions, sortable."""
     challenge = get_challenge(db, slug=slug)
     shown = shown_phase(challenge, name=phase)
-    suite = suite_of(challenge)
-    tasks = [t.env_id for t in suite.tasks]
-    stresses = [c.name for c in suite.conditions[1:]]
+    tasks, conditions = suite_columns(challenge)
+    stresses = conditions[1:]
     columns = board_columns(tasks, stresses)
     if sort not in {c.key for c in columns}:
         sort = "rank"
     descending = dir == "desc" if dir else sort not in ("user", "rank")
-    rows, total = _rows(request, db, shown, sort, descending, page, per_page)
-    return render(
-        request,
-        who,
-        "leaderboard.html",
-        challenge=challenge,
-        phase=shown,
-        tasks=tasks,
-        stresses=stresses,
-        columns=columns,
-        rows=rows,
-        total=total,
-        page=page,
-        per_page=per_page,
-        pages=max(1, -(-total // per_page)),
-        sort=sort,
-        descending=descending,
-        truncated=sort != "rank" and total >= SORT_LIMIT,
-    )
-
-
-def _rows(
-    request: Request, db: DB, phase: Phase, sort: str, descending: bool, page: int, per_page: int
-) -> tuple[list[Row], int]:
-    """One page of the board in rank order (read by the rank index), or sorted by a column."""
-    cache = services(request).leaderboards
+    board = snapshot(request, db, slug=challenge.slug, phase=shown.name)
+    places: Sequence[int]
     if sort == "rank":
-        board = cache.page(db, phase_id=phase.id, page=page, per_page=per_page)
-        return board.rows, board.total
-    ordered = sort_rows(
-        cache.page(db, phase_id=phase.id, page=1, per_page=SORT_LIMIT).rows, sort, descending
+        places, total = range(board.total)[(page - 1) * per_page : page * per_page], board.total
+    else:
+        order = board.order(sort_value(sort), sort, descending, SORT_LIMIT)
+        places, total = order[(page - 1) * per_page : page * per_page], len(order)
+    context = {
+        "challenge": challenge,
+        "phase": shown,
+        "tasks": tasks,
+        "stresses": stresses,
+        "columns": columns,
+        "total": total,
+        "page": page,
+        "per_page": per_page,
+        "pages": max(1, -(-total // per_page)),
+        "sort": sort,
+        "descending": descending,
+        "truncated": sort != "rank" and total >= SORT_LIMIT,
+    }
+    # What the content shows, all of it: a stored row's serial always means the same row
+    # (server/leaderboard/stored.py), the rest is the challenge's and the address's.
+    key = (
+        challenge.slug,
+        challenge.title,
+        tuple((p.id, p.name) for p in challenge.phases),
+        shown.id,
+        shown.name,
+        tuple(tasks),
+        tuple(stresses),
+        tuple((board.rows[i].serial, board.ranks[i], board.tied[i]) for i in places),
+        *(context[k] for k in ("total", "page", "per_page", "sort", "descending")),
     )
-    return ordered[(page - 1) * per_page : page * per_page], len(ordered)
+
+    def content() -> str:
+        rows = [board.row(i) for i in places]
+        cells = templates.get_template("_board_row.html").module.cells  # type: ignore[attr-defined]
+        columns = (tuple(tasks), tuple(stresses))
+
+        def cells_of(row: Row) -> Callable[[], str]:
+            return lambda: str(cells(row, tasks, stresses))
+
+        row_cells = [
+            Markup(board.rows[i].html(columns, cells_of(row)))
+            for i, row in zip(places, rows, strict=True)
+        ]
+        return templates.get_template("_leaderboard_main.html").render(
+            rows=rows, row_cells=row_cells, **context
+        )
+
+    main = services(request).board_pages.get(key, content)
+    return render(
+        request, who, "leaderboard.html", challenge=challenge, phase=shown, board_main=Markup(main)
+    )

@@ -2,9 +2,8 @@
 team mode, plus baselines.
 
 Rows live in ``leaderboard_entries``, recomputed by :mod:`server.leaderboard.entries` whenever
-something that decides them changes. Each change
-bumps the phase's ``leaderboard_version``; readers keep what they read per version: the pages
-and challenge pages, pages read by the rank index (`LeaderboardCache`), the API whole boards
+something that decides them changes. Each change bumps the phase's ``leaderboard_version``;
+the API, the leaderboard pages and the challenge pages read whole boards kept per version
 (:mod:`server.leaderboard.snapshot`).
 """
 
@@ -12,12 +11,12 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from datetime import datetime
 from typing import Any, TypeVar
 
-from sqlalchemy import Select, and_, func, or_, select
+from sqlalchemy import Select, and_, func, select
 from sqlalchemy.orm import Session as DB
 
 from server.challenges.charts import ScorePoint
@@ -51,10 +50,23 @@ def board_version(db: DB, *, slug: str, phase: str) -> tuple[int, int]:
     return found[0], found[1]
 
 
-def column_order(db: DB, *, slug: str) -> tuple[list[str], list[str]]:
-    """The challenge's tasks and conditions in its suite's order: every board's column order."""
-    suite = suite_of(get_challenge(db, slug=slug))
-    return [t.env_id for t in suite.tasks], [c.name for c in suite.conditions]
+_COLUMNS: OrderedDict[str, tuple[list[str], list[str]]] = OrderedDict()
+_COLUMNS_LOCK = threading.Lock()
+
+
+def suite_columns(challenge: Challenge) -> tuple[list[str], list[str]]:
+    """The tasks and conditions of the challenge's suite, in its order; kept per suite hash,
+    as parsing the stored suite costs more than a page's rows."""
+    with _COLUMNS_LOCK:
+        found = _COLUMNS.get(challenge.suite_hash)
+    if found is None:
+        suite = suite_of(challenge)
+        found = [t.env_id for t in suite.tasks], [c.name for c in suite.conditions]
+        with _COLUMNS_LOCK:
+            _COLUMNS[challenge.suite_hash] = found
+            while len(_COLUMNS) > 64:
+                _COLUMNS.popitem(last=False)
+    return list(found[0]), list(found[1])
 
 
 def baseline_points(db: DB, *, phase_id: int) -> list[tuple[str, float, datetime]]:
@@ -157,68 +169,7 @@ class Board:
     total: int
 
 
-@dataclass(frozen=True)
-class BoardMeta:
-    total: int
-    baselines: list[tuple[float, datetime, int]]  # rank keys of the baseline rows
-
-
-class LeaderboardCache:
-    """Pages of ranked rows per (phase, version, page); a bounded LRU shared by the threads.
-
-    A miss reads just that page by the rank index (and, once per version, the row count and
-    the baselines' positions, which fix the ranks of the rows after them), so even the first
-    request after a change costs a few indexed queries, not a read of the whole board.
-    """
-
-    def __init__(self, size: int = 256) -> None:
-        self._pages: OrderedDict[tuple[int, int, int, int], Board] = OrderedDict()
-        self._meta: OrderedDict[tuple[int, int], BoardMeta] = OrderedDict()
-        self._size = size
-        self._lock = threading.Lock()
-
-    def page(self, db: DB, *, phase_id: int, page: int, per_page: int) -> Board:
-        """One page of the phase's board in rank order, from the cache when it is current."""
-        version = db.scalar(select(Phase.leaderboard_version).where(Phase.id == phase_id)) or 0
-        key = (phase_id, version, page, per_page)
-        with self._lock:
-            if (hit := self._pages.get(key)) is not None:
-                self._pages.move_to_end(key)
-                return hit
-            meta = self._meta.get((phase_id, version))
-        if meta is None:
-            meta = read_meta(db, phase_id)
-        board = Board(rows=read_page(db, phase_id, page, per_page, meta), total=meta.total)
-        with self._lock:
-            self._meta[(phase_id, version)] = meta
-            self._pages[key] = board
-            for cache in (self._pages, self._meta):
-                while len(cache) > self._size:
-                    cache.popitem(last=False)
-        return board
-
-
 _RANK_ORDER = (LeaderboardEntry.score.desc(), LeaderboardEntry.submitted_at, LeaderboardEntry.id)
-
-
-def read_meta(db: DB, phase_id: int) -> BoardMeta:
-    """How many rows the phase's board has, and where its baselines stand."""
-    total = db.scalar(
-        select(func.count())
-        .select_from(LeaderboardEntry)
-        .where(LeaderboardEntry.phase_id == phase_id)
-    )
-    baselines = db.execute(
-        select(LeaderboardEntry.score, LeaderboardEntry.submitted_at, LeaderboardEntry.id)
-        .where(LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.baseline.is_(True))
-        .order_by(*_RANK_ORDER)
-    ).all()
-    return BoardMeta(total=total or 0, baselines=[(s, t, i) for s, t, i in baselines])
-
-
-def _ahead(a: tuple[float, datetime, int], b: tuple[float, datetime, int]) -> bool:
-    """Whether rank key `a` comes before `b` (higher score, then earlier, then lower id)."""
-    return (-a[0], a[1], a[2]) < (-b[0], b[1], b[2])
 
 
 BOARD_COLUMNS = (
@@ -247,51 +198,6 @@ def board_query(phase_id: int, *summary: Any) -> Select[*tuple[Any, ...]]:
 
 
 Interval = tuple[float, float] | None
-
-
-def ranked(
-    db: DB,
-    phase_id: int,
-    offset: int,
-    entries: Sequence[Any],
-    meta: BoardMeta,
-    interval_of: Callable[[Any], Interval],
-) -> Iterator[tuple[Any, int | None, Interval, bool]]:
-    """(entry, rank, score interval, tied) for `entries`, read in rank order from `offset`:
-    baselines are not ranked, and a row is tied when its interval overlaps the ranked row's
-    above it, on this page or the one before."""
-    if not entries:
-        return
-    first = (entries[0].score, entries[0].submitted_at, entries[0].id)
-    rank = offset - sum(1 for b in meta.baselines if _ahead(b, first))
-    above = _ranked_before(db, phase_id, first) if rank > 0 else None
-    for entry in entries:
-        interval = interval_of(entry)
-        if entry.baseline:
-            yield entry, None, interval, False
-            continue
-        rank += 1
-        yield entry, rank, interval, overlaps(interval, above)
-        above = interval
-
-
-def read_page(db: DB, phase_id: int, page: int, per_page: int, meta: BoardMeta) -> list[Row]:
-    """One page of the phase's board in rank order, ranks and ties decided as on every page."""
-    offset = (page - 1) * per_page
-    query = board_query(phase_id, LeaderboardEntry.summary).offset(offset).limit(per_page)
-    entries = db.execute(query).all()
-    rows = ranked(
-        db,
-        phase_id,
-        offset,
-        entries,
-        meta,
-        lambda e: interval_of_summary(db, e.summary, e.submission_id),
-    )
-    return [
-        board_row(entry, entry.summary, rank, interval, tied)
-        for entry, rank, interval, tied in rows
-    ]
 
 
 def board_row(
@@ -326,23 +232,3 @@ def interval_of_summary(db: DB, stored: dict[str, Any], submission_id: int) -> I
         stored = summary(db, submission=submission) if submission is not None else {}
     found = stored.get("score_interval")
     return (float(found[0]), float(found[1])) if found else None
-
-
-def _ranked_before(
-    db: DB, phase_id: int, key: tuple[float, datetime, int]
-) -> tuple[float, float] | None:
-    """The score interval of the last ranked (not baseline) row before rank key `key`."""
-    score, submitted_at, entry_id = key
-    e = LeaderboardEntry
-    before = or_(
-        e.score > score,
-        and_(e.score == score, e.submitted_at < submitted_at),
-        and_(e.score == score, e.submitted_at == submitted_at, e.id < entry_id),
-    )
-    found = db.execute(
-        select(e.summary, e.submission_id)
-        .where(e.phase_id == phase_id, e.baseline.is_(False), before)
-        .order_by(e.score, e.submitted_at.desc(), e.id.desc())
-        .limit(1)
-    ).first()
-    return interval_of_summary(db, found[0], found[1]) if found is not None else None

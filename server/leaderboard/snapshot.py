@@ -1,57 +1,61 @@
-"""Whole leaderboards in memory, for the API: one read of a phase's board per version, shared by
-every page, page size and format.
+"""Whole leaderboards in memory, for the API and the leaderboard pages: a phase's board read
+once, then kept current by the entries that come and go, shared by every page, page size,
+sort and format.
 
 A request takes its phase's snapshot as it is for `max_age` seconds after the snapshot's version
 was last confirmed; then the version is read again (one indexed lookup). When it has moved, one
-thread reads the board again while the others go on serving the snapshot they have, so a board
-that changes every second costs one read per `max_age`, however many distinct pages are asked
-for, and no request waits for another's read (but the very first of a phase's). Rows are
-serialized once per snapshot, when a page first shows them.
+thread brings the snapshot up to date while the others go on serving the one they have, so no
+request waits for another's read (but the very first of a phase's).
+
+Bringing a snapshot up to date reads the ids of the phase's rows (an index-only scan) and only
+the rows it does not hold yet: the entries that went are dropped, those that came are put in
+their place, and ranks and ties are counted again from the first place that changed. A change
+costs milliseconds where reading the whole board again costs a fifth of a second, during which
+the thread holds the interpreter. A full read happens for a phase's first snapshot, when its
+columns changed, when most of the board did (a rebuild), and on SQLite (`STABLE_IDS`). What is
+derived from one entry alone (`server.leaderboard.stored`) is made once and kept across
+snapshots.
 """
 
 from __future__ import annotations
 
-import csv
-import io
+import bisect
+import gc
 import json
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
-from sqlalchemy import Text, cast
+from sqlalchemy import Text, cast, func, select
 from sqlalchemy.orm import Session as DB
 
-from server.leaderboard.schemas import LeaderboardOut, LeaderboardRowOut
+from server.challenges.service import get_challenge
+from server.leaderboard.schemas import LeaderboardOut
 from server.leaderboard.service import (
     Interval,
     Row,
     board_query,
-    board_row,
     board_version,
-    column_order,
     interval_of_summary,
-    ranked,
-    read_meta,
+    overlaps,
+    suite_columns,
 )
-from server.models import LeaderboardEntry
+from server.leaderboard.stored import Stored, csv_header
+from server.models import Challenge, LeaderboardEntry
 
-CSV_HEADER = ["rank", "username", "baseline", "score", "score_ci_low", "score_ci_high", "tied"]
-CSV_HEADER += ["submitted_at", "submission_id", "team", "team_display_name", "method"]
-CSV_HEADER += ["paper_url", "code_url"]
+INCREMENT_SHARE = 0.5
+INCREMENT_MIN = 64
+"""Past this share of the board (and this many rows) come or gone, a snapshot is read whole
+again."""
+STABLE_IDS = frozenset({"postgresql"})
+"""Databases that never give a deleted row's id to a new one (a sequence), so that an id always
+means one row. SQLite reuses the highest ids once their rows are gone: there, a snapshot is
+read whole on every change (SQLite serves one process and small boards)."""
 
 
-@dataclass(frozen=True)
-class Ranked:
-    """A row of a snapshot before it is shown: its summary still JSON text, parsed only when a
-    page first shows the row (most rows of a board that changes every second never are)."""
-
-    entry: Any
-    summary_text: str
-    rank: int | None
-    interval: Interval
-    tied: bool
+Sort = tuple[str, bool, int]  # a sort key's name, descending, how many rows it sorts
 
 
 @dataclass
@@ -62,28 +66,43 @@ class Snapshot:
     phase: str
     phase_id: int  # a phase removed and made again under its name starts at version 0 again
     version: int
-    rows: list[Ranked]
+    rows: list[Stored]
+    ranks: list[int | None]  # None for baselines
+    tied: list[bool]
     tasks: list[str]
     conditions: list[str]
+    suite_hash: str  # names the columns (tasks and conditions)
     checked: float = field(default_factory=time.monotonic)
-    _json: list[bytes | None] = field(default_factory=list)
-    _csv: list[str | None] = field(default_factory=list)
+    by_id: dict[int, Stored] = field(init=False)
+    sorted_rows: dict[Sort, tuple[frozenset[int], list[Stored]]] = field(default_factory=dict)
+    """Sorted views of the first rows (by their serials), the last snapshot's until remade."""
+    _sorted: dict[Sort, list[int]] = field(init=False, default_factory=dict)
 
     def __post_init__(self) -> None:
-        self._json = [None] * len(self.rows)
-        self._csv = [None] * len(self.rows)
+        self.by_id = {stored.id: stored for stored in self.rows}
+
+    @property
+    def total(self) -> int:
+        return len(self.rows)
 
     def ready(self, page: int, per_page: int, format: str) -> bool:
         """Whether every row of the page is serialized already (a page then costs a join)."""
-        done = self._json if format == "json" else self._csv
-        return all(item is not None for item in done[(page - 1) * per_page : page * per_page])
+        shown = self.rows[(page - 1) * per_page : page * per_page]
+        return all(s.serialized(format) for s in shown)
 
     def body(self, page: int, per_page: int, format: str) -> bytes:
         """The page as the API sends it, JSON or CSV."""
         start, stop = (page - 1) * per_page, min(page * per_page, len(self.rows))
+        cols = self.tasks, self.conditions
         if format == "csv":
-            return self._csv_page(start, stop).encode()
-        items = b",".join(self._json_row(i) for i in range(start, stop))
+            lines = [csv_header(*cols)]
+            lines += [
+                self.rows[i].csv(*cols, self.ranks[i], self.tied[i]) for i in range(start, stop)
+            ]
+            return "".join(lines).encode()
+        items = b",".join(
+            self.rows[i].json(*cols, self.ranks[i], self.tied[i]) for i in range(start, stop)
+        )
         envelope = LeaderboardOut(
             challenge=self.slug,
             phase=self.phase,
@@ -98,59 +117,35 @@ class Snapshot:
         assert found, "LeaderboardOut serializes its items as a list"
         return head.encode() + b'"items":[' + items + b"]" + tail.encode()
 
-    def _json_row(self, index: int) -> bytes:
-        if (done := self._json[index]) is None:
-            done = self._json[index] = self._out(index).model_dump_json().encode()
-        return done
+    def row(self, index: int) -> Row:
+        """The row at this place in rank order, as the pages show it."""
+        shown = self.rows[index].row(self.tasks, self.conditions)
+        return replace(shown, rank=self.ranks[index], tied=self.tied[index])
 
-    def _out(self, index: int) -> LeaderboardRowOut:
-        r = self.rows[index]
-        row: Row = board_row(r.entry, json.loads(r.summary_text), r.rank, r.interval, r.tied)
-        shown = row.in_order(tasks=self.tasks, conditions=self.conditions)
-        return LeaderboardRowOut(**shown.__dict__)
-
-    def _csv_page(self, start: int, stop: int) -> str:
-        buf = io.StringIO()
-        header = CSV_HEADER + [f"{t} success" for t in self.tasks]
-        header += [f"{t} ci_low" for t in self.tasks] + [f"{t} ci_high" for t in self.tasks]
-        header += [f"condition {c}" for c in self.conditions]
-        csv.writer(buf).writerow(header)
-        for index in range(start, stop):
-            if (line := self._csv[index]) is None:
-                line = self._csv[index] = self._csv_line(index)
-            buf.write(line)
-        return buf.getvalue()
-
-    def _csv_line(self, index: int) -> str:
-        row, buf = self._out(index), io.StringIO()
-        cells: list[object] = [
-            row.rank if row.rank is not None else "",
-            csv_safe(row.username),
-            row.baseline,
-            f"{row.score:.4f}",
-            f"{row.score_ci_low:.4f}" if row.score_ci_low is not None else "",
-            f"{row.score_ci_high:.4f}" if row.score_ci_high is not None else "",
-            row.tied,
-            row.submitted_at.isoformat(),
-            row.submission_id,
-            row.team or "",
-            csv_safe(row.team_display_name or ""),
-            csv_safe(row.method or ""),
-            row.paper_url or "",
-            row.code_url or "",
-        ]
-        for key in ("success_rate", "ci_low", "ci_high"):
-            cells += [f"{row.tasks[t][key]:.4f}" if t in row.tasks else "" for t in self.tasks]
-        cells += [
-            f"{row.conditions[c]:.4f}" if c in row.conditions else "" for c in self.conditions
-        ]
-        csv.writer(buf).writerow(cells)
-        return buf.getvalue()
-
-
-def csv_safe(text: str) -> str:
-    """Spreadsheets run cells starting with = + - @ as formulas: defuse them."""
-    return "'" + text if text[:1] in ("=", "+", "-", "@") else text
+    def order(
+        self, key: Callable[[Row], Any], name: str, descending: bool, limit: int
+    ) -> list[int]:
+        """The places of the first `limit` rows in rank order, sorted by `key` (rows without a
+        value last either way); kept per snapshot under `name`, and carried over to the next
+        snapshot while those rows are the same ones (whatever their ranks)."""
+        sort = (name, descending, limit)
+        if (found := self._sorted.get(sort)) is not None:
+            return found
+        window = self.rows[:limit]
+        members = frozenset(s.serial for s in window)
+        known = self.sorted_rows.get(sort)
+        if known is not None and known[0] == members:
+            ordered = known[1]
+        else:
+            cols = self.tasks, self.conditions
+            values = [(s, s.sort_value(name, key, cols)) for s in window]
+            present = [(s, v) for s, v in values if v is not None]
+            present.sort(key=lambda sv: sv[1], reverse=descending)
+            ordered = [s for s, _ in present] + [s for s, v in values if v is None]
+        self.sorted_rows[sort] = (members, ordered)
+        place = {s.serial: i for i, s in enumerate(window)}
+        found = self._sorted[sort] = [place[s.serial] for s in ordered]
+        return found
 
 
 class Snapshots:
@@ -162,60 +157,184 @@ class Snapshots:
         self._boards: dict[tuple[str, str], Snapshot] = {}
         self._reading: set[tuple[str, str]] = set()
         self._lock = threading.Lock()
+        self._read = threading.Condition(self._lock)  # notified when a look is over
 
     def fresh(self, slug: str, phase: str) -> Snapshot | None:
-        """The phase's snapshot while it is trusted without a look at the database."""
+        """The phase's snapshot while it is trusted without a look at the database: for
+        `max_age` seconds after its version was confirmed, and while another thread is
+        confirming it or bringing it up to date."""
+        key = (slug, phase)
         with self._lock:
-            found = self._boards.get((slug, phase))
-        if found is None or time.monotonic() - found.checked >= self._max_age:
+            found = self._boards.get(key)
+            checking = key in self._reading
+        if found is None or (time.monotonic() - found.checked >= self._max_age and not checking):
             return None
         return found
 
     def current(self, sessions: Callable[[], DB], *, slug: str, phase: str) -> Snapshot:
-        """The phase's snapshot, its version confirmed or read again (blocking: a thread's)."""
+        """The phase's snapshot, its version confirmed or brought up to date (blocking)."""
+        with sessions() as db:
+            return self.current_in(db, slug=slug, phase=phase)
+
+    def current_in(self, db: DB, *, slug: str, phase: str) -> Snapshot:
+        """`current`, in a session the caller holds."""
         key = (slug, phase)
         with self._lock:
-            held = self._boards.get(key)
-        with sessions() as db:
+            waited = False
+            while (held := self._boards.get(key)) is None and key in self._reading:
+                self._read.wait()  # a phase's first read: one thread reads, the others wait
+                waited = True
+            if held is not None and (waited or key in self._reading):
+                return held  # another thread looks at the database: this one may lag
+            self._reading.add(key)
+        try:
             phase_id, version = board_version(db, slug=slug, phase=phase)  # 404/422 first
             if held is not None and (held.phase_id, held.version) == (phase_id, version):
                 held.checked = time.monotonic()
                 return held
+            same = held if held is not None and held.phase_id == phase_id else None
+            read = advance(db, same, version=version) if same is not None else None
+            if read is None:
+                read = read_whole(
+                    db, slug=slug, phase=phase, phase_id=phase_id, version=version, held=same
+                )
+                _exempt_from_gc()
             with self._lock:
-                if held is not None and key in self._reading:
-                    return held  # another thread reads the new version: this one may lag
-                self._reading.add(key)
-            try:
-                read = _read(db, slug=slug, phase=phase, phase_id=phase_id, version=version)
-            finally:
-                with self._lock:
-                    self._reading.discard(key)
-        with self._lock:
-            kept = self._boards.get(key)
-            if kept is None or kept.phase_id != read.phase_id or kept.version <= read.version:
-                self._boards[key] = read
-        return read
+                kept = self._boards.get(key)
+                if kept is None or kept.phase_id != read.phase_id or kept.version <= read.version:
+                    self._boards[key] = read
+            return read
+        finally:
+            with self._lock:
+                self._reading.discard(key)
+                self._read.notify_all()
 
 
-def _read(db: DB, *, slug: str, phase: str, phase_id: int, version: int) -> Snapshot:
+def _exempt_from_gc() -> None:
+    """After a whole read: exempt what lives now, the new board included, from the cyclic
+    garbage collector. A board is tens of thousands of long-lived objects that every full
+    collection walked, pausing each request in flight for 100 ms and more under load
+    (bench/leaderboard_load.py: p95 45-54 ms before, 31-36 ms after). Whole reads are rare (a
+    phase's first, a suite change, most of a board changed). Garbage with cycles is collected
+    first; rows hold no cycles, so a board dropped later is freed by reference counts."""
+    gc.collect()
+    gc.freeze()
+
+
+def _summary_columns() -> tuple[Any, ...]:
     # The summary as text, and only its score interval as JSON: ranks and ties need every
     # row's interval, the rest is parsed when a page shows the row.
     summary = LeaderboardEntry.summary
-    text_of = cast(summary, Text).label("summary_text")
     interval_at = [summary[("score_interval", end)].as_float() for end in (0, 1)]
-    columns = (text_of, interval_at[0].label("ci_low"), interval_at[1].label("ci_high"))
-    entries = db.execute(board_query(phase_id, *columns)).all()
+    text = cast(summary, Text).label("summary_text")
+    return text, interval_at[0].label("ci_low"), interval_at[1].label("ci_high")
 
-    def interval(entry: Any) -> Interval:
-        if entry.ci_low is not None and entry.ci_high is not None:
-            return (entry.ci_low, entry.ci_high)
-        return interval_of_summary(db, json.loads(entry.summary_text), entry.submission_id)
 
-    rows = [
-        Ranked(entry, entry.summary_text, rank, found, tied)
-        for entry, rank, found, tied in ranked(
-            db, phase_id, 0, entries, read_meta(db, phase_id), interval
-        )
-    ]
-    tasks, conditions = column_order(db, slug=slug)
-    return Snapshot(slug, phase, phase_id, version, rows, tasks, conditions)
+def _interval(db: DB, entry: Any) -> Interval:
+    if entry.ci_low is not None and entry.ci_high is not None:
+        return (entry.ci_low, entry.ci_high)
+    return interval_of_summary(db, json.loads(entry.summary_text), entry.submission_id)
+
+
+def read_whole(
+    db: DB, *, slug: str, phase: str, phase_id: int, version: int, held: Snapshot | None = None
+) -> Snapshot:
+    """The phase's board read whole (what `held`, of this phase, derived already is kept)."""
+    entries = db.execute(board_query(phase_id, *_summary_columns())).all()
+    challenge = get_challenge(db, slug=slug)
+    tasks, conditions = suite_columns(challenge)
+    keep: dict[int, Stored] = {}
+    if held is not None and (held.tasks, held.conditions) == (tasks, conditions):
+        keep = held.by_id if db.get_bind().dialect.name in STABLE_IDS else {}
+    rows: list[Stored] = []
+    ranks: list[int | None] = []
+    tied: list[bool] = []
+    for entry, rank, interval, tie in _ranked(entries, lambda e: _interval(db, e)):
+        rows.append(keep.get(entry.id) or Stored(entry, entry.summary_text, interval))
+        ranks.append(rank)
+        tied.append(tie)
+    return Snapshot(
+        slug, phase, phase_id, version, rows, ranks, tied, tasks, conditions, challenge.suite_hash
+    )
+
+
+def _ranked(
+    entries: Sequence[Any], interval_of: Callable[[Any], Interval]
+) -> Iterator[tuple[Any, int | None, Interval, bool]]:
+    """(entry, rank, score interval, tied) for a whole board's entries in rank order:
+    baselines are not ranked, and a row is tied when its interval overlaps the ranked row's
+    above it."""
+    rank, above = 0, None
+    for entry in entries:
+        interval = interval_of(entry)
+        if entry.baseline:
+            yield entry, None, interval, False
+            continue
+        rank += 1
+        yield entry, rank, interval, overlaps(interval, above)
+        above = interval
+
+
+def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
+    """`held` brought up to `version` by the entries that came and went since it was read;
+    None when a whole read is due (columns changed, most of the board did, or a row read as
+    present went before it could be read), and always on a database that reuses ids."""
+    if db.get_bind().dialect.name not in STABLE_IDS:
+        return None
+    suite = db.scalar(select(Challenge.suite_hash).where(Challenge.slug == held.slug))
+    if suite != held.suite_hash:
+        return None  # its columns may have changed
+    e = LeaderboardEntry
+    ids = select(func.array_agg(e.id)).where(e.phase_id == held.phase_id)
+    now = set(db.connection().execute(ids).scalar() or ())  # one array: no row per id
+    gone = held.by_id.keys() - now
+    came = now - held.by_id.keys()
+    if len(gone) + len(came) > max(INCREMENT_MIN, len(held.rows) * INCREMENT_SHARE):
+        return None
+    new: list[Stored] = []
+    if came:
+        query = board_query(held.phase_id, *_summary_columns()).where(e.id.in_(came))
+        new = [Stored(r, r.summary_text, _interval(db, r)) for r in db.execute(query)]
+        if len(new) != len(came):
+            return None  # refreshed between the two reads: the ids are not one state
+    rows = [s for s in held.rows if s.id not in gone] if gone else list(held.rows)
+    for stored in new:
+        bisect.insort(rows, stored, key=lambda s: s.key)
+    first = next(
+        (i for i, (a, b) in enumerate(zip(rows, held.rows, strict=False)) if a is not b),
+        min(len(rows), len(held.rows)),
+    )
+    ranks, tied = held.ranks[:first], held.tied[:first]
+    _rank_from(rows, first, ranks, tied)
+    return Snapshot(
+        held.slug,
+        held.phase,
+        held.phase_id,
+        version,
+        rows,
+        ranks,
+        tied,
+        held.tasks,
+        held.conditions,
+        held.suite_hash,
+        sorted_rows=dict(held.sorted_rows),
+    )
+
+
+def _rank_from(rows: list[Stored], first: int, ranks: list[int | None], tied: list[bool]) -> None:
+    """Extend `ranks` and `tied`, right up to `first`, to every row: baselines are not ranked,
+    and a row is tied when its interval overlaps the one of the ranked row above it."""
+    rank, above = 0, None
+    for i in range(first - 1, -1, -1):
+        if (found := ranks[i]) is not None:
+            rank, above = found, rows[i].interval
+            break
+    for stored in rows[first:]:
+        if stored.baseline:
+            ranks.append(None)
+            tied.append(False)
+            continue
+        rank += 1
+        ranks.append(rank)
+        tied.append(overlaps(stored.interval, above))
+        above = stored.interval

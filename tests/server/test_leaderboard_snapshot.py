@@ -4,12 +4,21 @@ reader never waits for another's read of a newer version."""
 
 from __future__ import annotations
 
+import gc
+import json
+import threading
+import time
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import update
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.leaderboard import snapshot
 from server.leaderboard.snapshot import Snapshots
-from server.models import Phase, State
+from server.models import LeaderboardEntry, Phase, State, Submission
 from server.submissions.reports import report_final, report_state
 from tests.factories import make_challenge, make_user, queue_submission, result_doc
 
@@ -64,6 +73,16 @@ def test_a_change_shows_once_its_version_is_confirmed(
     assert boards.current(sessions, slug="server-tiny", phase="dev") is again  # confirmed
 
 
+def test_a_whole_read_exempts_the_board_from_the_cyclic_collector(
+    sessions: sessionmaker[Session], db: Session
+) -> None:
+    _ranked(db, ["ada", "bob"])
+    gc.unfreeze()
+    board = Snapshots(max_age=3600).current(sessions, slug="server-tiny", phase="dev")
+    assert gc.get_freeze_count() > 0  # the board, and what lived when it was read
+    assert [s.username for s in board.rows] == ["ada", "bob"]
+
+
 def test_while_one_reader_reads_a_new_version_the_others_serve_the_last_one(
     sessions: sessionmaker[Session], db: Session
 ) -> None:
@@ -76,3 +95,103 @@ def test_while_one_reader_reads_a_new_version_the_others_serve_the_last_one(
     assert boards.current(sessions, slug="server-tiny", phase="dev") is held
     boards._reading.clear()
     assert boards.current(sessions, slug="server-tiny", phase="dev").version == held.version + 1
+
+
+def test_while_one_reader_looks_at_the_database_the_others_take_the_snapshot_as_fresh(
+    sessions: sessionmaker[Session], db: Session
+) -> None:
+    _ranked(db, ["ada"])
+    boards = Snapshots(max_age=0.0)
+    held = boards.current(sessions, slug="server-tiny", phase="dev")
+    assert boards.fresh("server-tiny", "dev") is None  # past max_age: to be confirmed
+    boards._reading.add(("server-tiny", "dev"))  # another thread confirms it now
+    assert boards.fresh("server-tiny", "dev") is held  # no thread, no query meanwhile
+    boards._reading.clear()
+    assert boards.fresh("server-tiny", "dev") is None
+
+
+def test_a_phases_first_read_is_one_read_however_many_ask_at_once(
+    sessions: sessionmaker[Session], db: Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _ranked(db, ["ada", "bob"])
+    boards = Snapshots(max_age=3600)
+    askers = 6
+    reads: list[int] = []
+    whole = snapshot.read_whole
+
+    def read_while_the_others_wait(*args: Any, **kwargs: Any) -> snapshot.Snapshot:
+        reads.append(1)
+        deadline = time.monotonic() + 30  # bounded by progress: the others reach their wait
+        while len(boards._read._waiters) < askers - 1 and time.monotonic() < deadline:  # type: ignore[attr-defined]
+            time.sleep(0.01)
+        return whole(*args, **kwargs)
+
+    monkeypatch.setattr(snapshot, "read_whole", read_while_the_others_wait)
+    got: list[snapshot.Snapshot] = []
+
+    def ask() -> None:
+        got.append(boards.current(sessions, slug="server-tiny", phase="dev"))
+
+    threads = [threading.Thread(target=ask) for _ in range(askers)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(reads) == 1
+    assert len(got) == askers
+    assert all(board is got[0] for board in got)
+
+
+def test_every_page_numbers_its_rows_around_baselines_as_the_whole_board(
+    sessions: sessionmaker[Session], db: Session
+) -> None:
+    challenge = make_challenge(db)
+    phase = challenge.phases[0]
+    start = datetime(2026, 1, 1, tzinfo=UTC)
+    scores = [0.9, 0.5, 0.5, 0.95, 0.1, 0.5, 0.7]  # user2 and user5 are baselines
+    for i, score in enumerate(scores):
+        user = make_user(db, f"user{i}")
+        s = Submission(
+            user_id=user.id,
+            challenge_id=challenge.id,
+            phase_id=phase.id,
+            image="x",
+            pinned_image="x",
+            state=State.SUCCEEDED,
+            score=score,
+            created_at=start + timedelta(minutes=i),
+            updated_at=start,
+        )
+        db.add(s)
+        db.flush()
+        db.add(
+            LeaderboardEntry(
+                phase_id=phase.id,
+                submission_id=s.id,
+                user_id=user.id,
+                owner_key=None if i in (2, 5) else user.id,
+                baseline=i in (2, 5),
+                score=score,
+                submitted_at=s.created_at,
+                username=user.username,
+                summary={},
+            )
+        )
+    db.commit()
+    expected = [
+        ("user3", 1),
+        ("user0", 2),
+        ("user6", 3),
+        ("user1", 4),
+        ("user2", None),
+        ("user5", None),
+        ("user4", 5),
+    ]
+    board = Snapshots(max_age=3600).current(sessions, slug="server-tiny", phase="dev")
+    for per_page in (1, 2, 3, 7, 10):
+        seen = []
+        for page in range(1, 8):
+            body = json.loads(board.body(page, per_page, "json"))
+            assert body["total"] == 7
+            seen += [(r["username"], r["rank"]) for r in body["items"]]
+        assert seen == expected, per_page
