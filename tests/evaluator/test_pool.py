@@ -159,7 +159,8 @@ from evaluator.plan import build_plan
 from evaluator.sources import LocalDirectory
 from evaluator.suite import load_suite
 
-plan = build_plan(load_suite(Path(sys.argv[1])), "dev", tasks=["PickCube-v1"], conditions=["nominal"])
+suite = load_suite(Path(sys.argv[1]))
+plan = build_plan(suite, "dev", tasks=["PickCube-v1"], conditions=["nominal"])
 run = plan.runs[0].model_copy(update={"max_episode_steps": 100_000})
 evaluate(plan.model_copy(update={"runs": (run,)}), LocalDirectory(Path(sys.argv[2])), warm=True)
 """
