@@ -9,7 +9,7 @@ from importlib import metadata
 from pathlib import Path
 
 from evaluator.plan import EvaluationPlan
-from evaluator.pool import can_start_processes, leased
+from evaluator.pool import can_start_processes, run_warm
 from evaluator.results import (
     BudgetUse,
     ConditionResult,
@@ -68,8 +68,7 @@ def evaluate(
             )
         ]
     else:
-        with leased(workers) as pool:
-            outcomes = pool.run(plan, source, shards, options, callback, should_stop)
+        outcomes = run_warm(workers, plan, source, shards, options, callback, should_stop)
     return build_result(plan, source.describe(), outcomes, started=started)
 
 

@@ -44,6 +44,8 @@ PARENT_CHECK_S = 0.5
 """How often an evaluator process checks that the process that started it is still there."""
 ORPHAN_GRACE_S = 30.0
 """How long an orphaned evaluator process gives its shard to stop its policy, before it ends."""
+END_WAIT_S = 30.0
+"""How long the lessee waits, once every shard has returned, for the last events they sent."""
 
 
 ProcessSetup = tuple[Callable[..., object], tuple[Any, ...]]
@@ -63,6 +65,10 @@ class EvaluatorCrashed(RuntimeError):
     failure, never the policy's."""
 
 
+class PoolBroken(EvaluatorCrashed):
+    """A process of the pool died while it was idle: nothing of the evaluation ran."""
+
+
 class WarmPool:
     """`processes` evaluator processes that have imported torch and ManiSkill, one evaluation
     at a time."""
@@ -79,7 +85,7 @@ class WarmPool:
             max_workers=processes,
             mp_context=context,
             initializer=_init_process,
-            initargs=(self._events, self._stop, _process_setup),
+            initargs=(self._events, self._stop, _process_setup, os.getpid()),
         )
         self.usable = True
 
@@ -105,10 +111,13 @@ class WarmPool:
         run_id = next(self._runs)
         self._stop.clear()
         self.usable = False  # until this run has ended cleanly
-        futures = [
-            self._executor.submit(_shard_in_process, run_id, plan, source, shard, options)
-            for shard in shards
-        ]
+        try:
+            futures = [
+                self._executor.submit(_shard_in_process, run_id, plan, source, shard, options)
+                for shard in shards
+            ]
+        except BrokenProcessPool as exc:
+            raise PoolBroken(f"an evaluator process ended while idle: {exc}") from exc
         try:
             self._pump(run_id, futures, on_episode, should_stop)
             outcomes = [future.result() for future in futures]
@@ -128,19 +137,31 @@ class WarmPool:
         on_episode: EpisodeCallback,
         should_stop: Callable[[], bool],
     ) -> None:
+        ended = 0  # shards whose last event arrived: results and events take different pipes
+        all_done_at: float | None = None
         while True:
             if should_stop():
                 self._stop.set()
-            done = all(future.done() for future in futures)
+            failed = any(f.done() and not f.cancelled() and f.exception() for f in futures)
+            if failed:  # a shard raised (or its process died): the others need not go on
+                self._stop.set()
+            if all_done_at is None and all(future.done() for future in futures):
+                all_done_at = time.monotonic()
+            if ended == len(futures):
+                return
             try:
                 owner, kind, run_index, payload = self._events.get(timeout=EVENT_WAIT_S)
             except queue.Empty:
-                if done:
+                if all_done_at is not None and (
+                    failed or time.monotonic() - all_done_at > END_WAIT_S
+                ):
                     return
                 continue
             if owner != run_id:  # a late event of an earlier run of this pool
                 continue
-            if kind == "episode":
+            if kind == "end":
+                ended += 1
+            elif kind == "episode":
                 on_episode(run_index, EpisodeResult.model_validate(payload))
             elif kind == "abort":  # the policy broke: the other shards stop too
                 self._stop.set()
@@ -154,6 +175,27 @@ class WarmPool:
 
 _idle: dict[int, list[WarmPool]] = {}
 _idle_lock = threading.Lock()
+
+
+def run_warm(
+    processes: int,
+    plan: EvaluationPlan,
+    source: PolicySource,
+    shards: list[Shard],
+    options: RunOptions,
+    on_episode: EpisodeCallback,
+    should_stop: Callable[[], bool],
+) -> list[ShardOutcome]:
+    """`WarmPool.run` on a leased pool; once more on a new pool if the leased one turns out to
+    have lost a process while idle (nothing had run yet)."""
+    for attempt in (1, 2):
+        try:
+            with leased(processes) as pool:
+                return pool.run(plan, source, shards, options, on_episode, should_stop)
+        except PoolBroken:
+            if attempt == 2:
+                raise
+    raise AssertionError("unreachable")
 
 
 @contextmanager
@@ -202,13 +244,16 @@ _shard_done = threading.Event()  # in an evaluator process: no shard is running
 _shard_done.set()
 
 
-def _init_process(events: Any, stop: Any, setup: ProcessSetup | None) -> None:
+def _init_process(events: Any, stop: Any, setup: ProcessSetup | None, parent: int) -> None:
     global _events, _stop
     _events, _stop = events, stop
-    # A Ctrl-C in the terminal reaches the whole process group: the lessee decides what stops.
+    # A Ctrl-C in the terminal, or a service manager's SIGTERM, reaches the whole process
+    # group: the lessee decides what stops, and the shard then stops its policy itself. Were
+    # the lessee gone, `_end_with_parent` stops the shard.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     threading.Thread(
-        target=_end_with_parent, args=(os.getppid(),), name="parent-watch", daemon=True
+        target=_end_with_parent, args=(parent,), name="parent-watch", daemon=True
     ).start()
     if setup is not None:
         function, args = setup
@@ -242,8 +287,9 @@ def _shard_in_process(
         outcome = run_shard(
             plan, source, shard, options=options, on_episode=report, should_stop=_stop.is_set
         )
+        if outcome.abort is not None:
+            _events.put((run_id, "abort", outcome.abort[0], None))
     finally:
+        _events.put((run_id, "end", None, None))  # after every event of the shard's
         _shard_done.set()
-    if outcome.abort is not None:
-        _events.put((run_id, "abort", outcome.abort[0], None))
     return outcome

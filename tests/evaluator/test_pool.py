@@ -84,6 +84,26 @@ def test_a_crashed_evaluator_process_fails_the_evaluation_and_its_pool_is_not_re
     assert [e.failure for _, e in outcomes[0].episodes] == [None, None, None]
 
 
+def test_a_pool_that_lost_a_process_while_idle_is_replaced() -> None:
+    """An idle pool whose process died (the OOM killer, say) is not the evaluation's fault: it
+    runs whole on a new pool."""
+    with leased(1) as pool:
+        pool.warm()
+    executor = pool._executor
+    victim = next(iter(executor._processes.values()))  # type: ignore[attr-defined]
+    victim.kill()
+    victim.join(timeout=60)
+    deadline = time.monotonic() + 120
+    while not executor._broken:  # type: ignore[attr-defined]  # the executor notices on its own
+        assert time.monotonic() < deadline, "the executor never noticed its dead process"
+        time.sleep(0.1)
+    plan = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"])
+    result = evaluate(plan, LocalDirectory(SCRIPTED), warm=True)
+    assert [e.failure for e in result.conditions[0].tasks[0].episodes] == [None, None, None]
+    with leased(1) as again:
+        assert again is not pool
+
+
 def test_after_a_cancel_the_pool_serves_the_next_evaluation_whole() -> None:
     plan = tiny_plan(conditions=["nominal"])
     short, long = plan.runs
