@@ -126,7 +126,8 @@ def leaderboard_page(
             rows=rows, row_cells=row_cells, **context
         )
 
-    main = services(request).board_pages.get(key, content)
+    # A page past the end is not kept: any address could otherwise push real pages out.
+    main = services(request).board_pages.get(key, content) if places else content()
     return render(
         request, who, "leaderboard.html", challenge=challenge, phase=shown, board_main=Markup(main)
     )
