@@ -230,7 +230,7 @@ def idle_pools() -> int:
 
 @atexit.register
 def close_idle() -> None:
-    """Close every idle pool (at exit, or when a worker stops)."""
+    """Close every idle pool (registered to run at exit)."""
     with _idle_lock:
         pools = [pool for pools in _idle.values() for pool in pools]
         _idle.clear()

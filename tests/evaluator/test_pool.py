@@ -16,6 +16,7 @@ from typing import Any
 import psutil
 import pytest
 
+from evaluator import evaluation
 from evaluator import pool as pools
 from evaluator.evaluation import evaluate
 from evaluator.pool import EvaluatorCrashed, WarmPool, leased
@@ -55,9 +56,14 @@ def test_a_leased_pool_is_kept_and_gives_the_in_process_records() -> None:
     assert episode_records(warm) == episode_records(here)
 
 
-def test_a_warm_run_of_one_worker_runs_outside_this_process() -> None:
+def test_a_warm_run_of_one_worker_runs_outside_this_process(monkeypatch: Any) -> None:
     plan = tiny_plan(tasks=["PushCube-v1"], conditions=["nominal"])
     here = evaluate(plan, LocalDirectory(SCRIPTED))
+
+    def not_here(*_args: Any, **_kwargs: Any) -> None:
+        raise AssertionError("a warm run ran its shard in the lessee's process")
+
+    monkeypatch.setattr(evaluation, "run_shard", not_here)  # the evaluator processes keep theirs
     seen: list[EpisodeResult] = []
     warm = evaluate(
         plan,
