@@ -38,6 +38,7 @@ class Progress:
     clipped: int = 0
     success_once: bool = False
     success_at_end: bool = False
+    filmed: int = -1  # the last step whose frame was recorded (0: the reset state)
 
 
 def run_episode(
@@ -51,6 +52,7 @@ def run_episode(
     bounds: tuple[np.ndarray, np.ndarray],
     ignore_terminations: bool,
     frames: list[np.ndarray] | None = None,
+    frame_every: int = 1,
     should_stop: Callable[[], bool] = lambda: False,
 ) -> EpisodeResult:
     """Run one episode; policy-level failures end it as a failure with a reason.
@@ -59,14 +61,16 @@ def run_episode(
     success at the last step is measured; otherwise it ends at the first termination (success)
     and `success_at_end` is null. A PolicyFailure (an abort) propagates, carrying the episode's
     record so far; so does Stopped, when `should_stop` (polled between steps) says so.
+
+    With `frames`, the episode is filmed into it: the reset state, then the state after every
+    `frame_every`-th step, and after the last step whatever its number.
     """
     started = time.perf_counter()
     policy_time_before = channel.policy_time_s
     raw_obs, _ = env.reset(seed=seed)
     seen = runtime.begin_episode(seed, to_numpy(raw_obs))
     progress = Progress()
-    if frames is not None:  # the reset state: the scene before the policy's first action
-        frames.append(to_numpy(env.render()))
+    _film(env, frames, progress, every=1)  # the reset state: before the policy's first action
 
     def record(failure: tuple[FailureKind, str] | None) -> EpisodeResult:
         failed = failure is not None
@@ -99,10 +103,13 @@ def run_episode(
             bounds,
             ignore_terminations,
             frames,
+            frame_every,
             should_stop,
         )
+        _film(env, frames, progress, every=1)
         return record(("invalid_action", problem) if problem else None)
     except PolicyRaised as exc:
+        _film(env, frames, progress, every=1)
         return record(("policy_error", f"the policy raised: {exc}"))
     except PolicyFailure as failure:
         failure.episode = record((failure.kind, failure.reason))
@@ -119,6 +126,7 @@ def _play(
     bounds: tuple[np.ndarray, np.ndarray],
     ignore_terminations: bool,
     frames: list[np.ndarray] | None,
+    frame_every: int,
     should_stop: Callable[[], bool],
 ) -> str | None:
     """Act and step until the episode ends; why an action could not be applied, if one was not."""
@@ -138,9 +146,16 @@ def _play(
         progress.episode_return += float(to_numpy(reward))
         progress.success_at_end = flag(info["success"])
         progress.success_once = progress.success_once or progress.success_at_end
-        if frames is not None:
-            frames.append(to_numpy(env.render()))
+        _film(env, frames, progress, every=frame_every)
         if not ignore_terminations and (flag(terminated) or flag(truncated)):
             return None
         seen = runtime.observe(to_numpy(raw_obs))
     return None
+
+
+def _film(env: Any, frames: list[np.ndarray] | None, progress: Progress, *, every: int) -> None:
+    """Record the current state's frame if the episode is filmed, its step is on the film's
+    cadence (`every`), and it was not recorded yet."""
+    if frames is not None and progress.filmed != progress.steps and progress.steps % every == 0:
+        frames.append(to_numpy(env.render()))
+        progress.filmed = progress.steps

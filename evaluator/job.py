@@ -91,6 +91,8 @@ class EvaluationJob(BaseModel):
             ignore_terminations=suite.ignore_terminations,
             videos=suite.videos,
             video_conditions=suite.video_conditions,
+            video_size=suite.video_size,
+            video_fps=suite.video_fps,
         )
 
     def canonical_json(self) -> str:

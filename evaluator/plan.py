@@ -38,11 +38,21 @@ class EvaluationPlan(BaseModel):
     """Episodes recorded per task run: those with an index below it (the first N)."""
     video_conditions: tuple[str, ...] | None = None
     """The conditions whose task runs are recorded (None: every one)."""
+    video_size: int | None = None
+    """Frames' side in pixels (None: the task's render camera's own size)."""
+    video_fps: int | None = None
+    """At most this many frames per second of control time (None: a frame after every step)."""
 
     def records(self, run: TaskRun, index: int) -> bool:
         """Whether episode `index` of task run `run` is recorded as a video."""
         wanted = self.video_conditions is None or run.condition.name in self.video_conditions
         return wanted and index < self.videos
+
+    def frame_stride(self, control_freq: int) -> int:
+        """Film every this many steps: the fewest that keep the video within `video_fps`."""
+        if self.video_fps is None:
+            return 1
+        return max(1, -(-control_freq // self.video_fps))
 
     def episode_count(self) -> int:
         """Episodes in the whole plan."""
@@ -100,4 +110,6 @@ def build_plan(
         videos=max(recorded, 1) if record_video else recorded,
         # Asked for on the command line: every condition, whatever the suite limits it to.
         video_conditions=None if record_video else suite.video_conditions,
+        video_size=suite.video_size,
+        video_fps=suite.video_fps,
     )

@@ -110,7 +110,8 @@ def open_task(
     run = plan.runs[run_index]
     runtime = ConditionRuntime(run.condition)
     record = options.video_dir is not None and any(plan.records(run, i) for i, _ in episodes)
-    return TaskEnv(make_env(run, runtime, render=record), runtime, record)
+    env = make_env(run, runtime, render=record, frame_size=plan.video_size if record else None)
+    return TaskEnv(env, runtime, record)
 
 
 def run_units(
@@ -169,6 +170,7 @@ def _run_task(
 ) -> None:
     step_limit = runtime.step_limit(run.max_episode_steps, default_control_freq(env))
     bounds = action_bounds(env)
+    stride = plan.frame_stride(control_freq(env))
     index, seed = episodes[0]  # where a PolicyFailure is charged
     try:
         setup_error = _start_task(channel, task_spec(run, env, step_limit))
@@ -195,13 +197,13 @@ def _run_task(
                     bounds=bounds,
                     ignore_terminations=plan.ignore_terminations,
                     frames=frames,
+                    frame_every=stride,
                     should_stop=should_stop,
                 )
                 if frames and options.video_dir is not None:
+                    fps = control_freq(env) / stride
                     outcome.videos.append(
-                        write_video(
-                            frames, options.video_dir, run=run, episode=index, fps=control_freq(env)
-                        )
+                        write_video(frames, options.video_dir, run=run, episode=index, fps=fps)
                     )
             outcome.episodes.append((run_index, result))
             on_episode(run_index, result)

@@ -16,12 +16,16 @@ from evaluator.conditions import ConditionRuntime, Observation
 from evaluator.plan import TaskRun
 
 
-def make_env(run: TaskRun, runtime: ConditionRuntime, *, render: bool = False) -> Any:
-    """Create the gymnasium environment for one task run (one environment, no batching)."""
+def make_env(
+    run: TaskRun, runtime: ConditionRuntime, *, render: bool = False, frame_size: int | None = None
+) -> Any:
+    """Create the gymnasium environment for one task run (one environment, no batching);
+    with `render`, its frames are `frame_size` pixels a side (None: the task's own camera's)."""
     import gymnasium as gym
     import mani_skill.envs  # noqa: F401  (registers the ManiSkill environments)
 
     cpu = run.sim_backend == "physx_cpu"
+    camera = {"width": frame_size, "height": frame_size} if render and frame_size else None
     env = gym.make(
         run.env_id,
         num_envs=1,
@@ -30,6 +34,7 @@ def make_env(run: TaskRun, runtime: ConditionRuntime, *, render: bool = False) -
         sim_backend=run.sim_backend,
         render_backend="sapien_cpu" if cpu else "gpu",
         render_mode="rgb_array" if render else None,
+        **({"human_render_camera_configs": camera} if camera else {}),
         max_episode_steps=run.max_episode_steps * 100,  # the evaluator enforces the real limit
         reconfiguration_freq=1,
         **runtime.env_kwargs(),

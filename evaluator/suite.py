@@ -126,6 +126,13 @@ class Suite(_Strict):
     video_conditions: tuple[str, ...] | None = None
     """Only these conditions' episodes are recorded (None: every condition's): rendering a
     frame costs several times a step on the CPU. Not in the hash either."""
+    video_size: int | None = Field(default=None, ge=64, le=2048, multiple_of=16)
+    """Recorded frames are this many pixels a side (None: the task's own render camera, 512 for
+    ManiSkill's tabletop tasks); H.264 wants a multiple of 16. Not in the hash either."""
+    video_fps: int | None = Field(default=None, ge=1, le=120)
+    """At most this many frames per second of the episode's control time (None: one frame
+    after every step): every k-th step is filmed, k the smallest whole number that keeps the
+    rate under it, and the last step always. Not in the hash either."""
 
     @model_validator(mode="after")
     def _unique_names(self) -> Suite:
@@ -170,9 +177,7 @@ class Suite(_Strict):
 
     def sha256(self) -> str:
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
-        content = self.model_dump(
-            mode="json", exclude={"shards", "title", "videos", "video_conditions"}
-        )
+        content = self.model_dump(mode="json", exclude={"shards", "title", *RECORDING})
         for name in _HASHED_WHEN_SET:  # suites that do not use a newer setting keep their hash
             if content[name] == type(self).model_fields[name].default:
                 del content[name]
@@ -182,6 +187,8 @@ class Suite(_Strict):
 
 # Settings added after suites were first published: part of the hash only when not the default.
 _HASHED_WHEN_SET = ("ignore_terminations",)
+RECORDING = ("videos", "video_conditions", "video_size", "video_fps")
+"""The settings that say what is filmed and how: they change no result, so no hash."""
 
 
 def load_suite(ref: str | Path) -> Suite:

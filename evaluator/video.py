@@ -2,7 +2,8 @@
 
 H.264 in yuv420p (the only chroma layout browsers decode), with the index at the front of the
 file (`+faststart`) so that a `<video>` element can start and seek before the whole file has
-arrived. The first frame is the reset state, then one frame after each step.
+arrived. The first frame is the reset state, then one after every k-th step (k from the suite's
+`video_fps`, 1 without it) and one after the last.
 """
 
 from __future__ import annotations
@@ -30,9 +31,9 @@ def video_name(*, condition: str, env_id: str, episode: int) -> str:
 
 
 def write_video(
-    frames: list[Any], directory: Path, *, run: TaskRun, episode: int, fps: int
+    frames: list[Any], directory: Path, *, run: TaskRun, episode: int, fps: float
 ) -> Video:
-    """Encode `frames` (H x W x 3 uint8) to `<directory>/<video_name(...)>`."""
+    """Encode `frames` (H x W x 3 uint8), played at `fps`, to `<directory>/<video_name(...)>`."""
     import imageio.v2 as imageio
 
     directory.mkdir(parents=True, exist_ok=True)

@@ -17,6 +17,7 @@ import yaml
 
 from evaluator import runner
 from evaluator.conditions import ConditionRuntime
+from evaluator.endpoint import PolicyRaised
 from evaluator.episode import run_episode
 from evaluator.job import EvaluationJob, evaluation_job
 from evaluator.plan import TaskRun, build_plan
@@ -94,6 +95,95 @@ def test_a_recording_starts_with_the_reset_state_and_has_a_frame_after_every_ste
     assert [int(f[0, 0, 0]) for f in frames] == list(range(18))
 
 
+@pytest.mark.parametrize(
+    ("every", "filmed"), [(3, [0, 3, 6, 9, 12, 15, 17]), (17, [0, 17]), (20, [0, 17])]
+)
+def test_a_film_at_a_lower_rate_keeps_every_kth_step_and_always_the_last(
+    every: int, filmed: list[int]
+):
+    frames: list[np.ndarray] = []
+    run_episode(
+        ScriptedEnv(),
+        StillPolicy(),
+        nominal(),
+        index=0,
+        seed=7,
+        step_limit=17,
+        bounds=(-np.ones(2, np.float32), np.ones(2, np.float32)),
+        ignore_terminations=False,
+        frames=frames,
+        frame_every=every,
+    )
+    assert [int(f[0, 0, 0]) for f in frames] == filmed
+
+
+def test_a_policy_that_raises_is_filmed_to_the_state_it_left():
+    class RaisesAtStep5(StillPolicy):
+        calls = 0
+
+        def act(self, obs: Any) -> Any:
+            self.calls += 1
+            if self.calls == 6:
+                raise PolicyRaised("ValueError: no")
+            return super().act(obs)
+
+    frames: list[np.ndarray] = []
+    result = run_episode(
+        ScriptedEnv(),
+        RaisesAtStep5(),
+        nominal(),
+        index=0,
+        seed=7,
+        step_limit=17,
+        bounds=(-np.ones(2, np.float32), np.ones(2, np.float32)),
+        ignore_terminations=False,
+        frames=frames,
+        frame_every=4,
+    )
+    assert (result.failure, result.steps) == ("policy_error", 5)
+    assert [int(f[0, 0, 0]) for f in frames] == [0, 4, 5]
+
+
+def test_a_rate_limit_films_every_kth_step_and_plays_in_real_time(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+):
+    suite = tiny_suite().model_copy(update={"videos": 1, "video_size": 64, "video_fps": 8})
+    plan = build_plan(suite, "dev", tasks=["PickCube-v1"], conditions=["nominal"], episodes=1)
+    sizes: list[int | None] = []
+    written: list[tuple[int, float]] = []
+
+    def make_env(_run: TaskRun, _rt: ConditionRuntime, *, render: bool, frame_size: int | None):
+        sizes.append(frame_size)
+        return ScriptedEnv()
+
+    def write(frames: list[Any], directory: Path, *, run: TaskRun, episode: int, fps: float):
+        written.append((len(frames), fps))
+        return Video(env_id=run.env_id, condition=run.condition.name, episode=episode, path="x")
+
+    monkeypatch.setattr(runner, "make_env", make_env)
+    monkeypatch.setattr(runner, "write_video", write)
+    run_units(
+        plan,
+        StillPolicy(),
+        make_shards(plan, 1)[0].units,
+        ShardOutcome(),
+        options=RunOptions(video_dir=tmp_path),
+        on_episode=lambda _run, _episode: None,
+    )
+    assert sizes == [64]
+    steps = plan.runs[0].max_episode_steps  # the scripted environment never ends by itself
+    # 20 Hz control at most 8 frames a second: every 3rd step, played at 20/3 frames a second.
+    assert written == [(1 + steps // 3 + (steps % 3 > 0), 20 / 3)]
+
+
+def test_the_frame_stride_keeps_within_the_suites_rate():
+    plan = tiny_plan()
+    assert plan.video_fps is None
+    assert plan.frame_stride(20) == 1
+    for fps, control, stride in [(10, 20, 2), (15, 20, 2), (20, 20, 1), (10, 5, 1), (7, 30, 5)]:
+        assert plan.model_copy(update={"video_fps": fps}).frame_stride(control) == stride
+
+
 def test_the_first_n_episodes_of_every_task_and_condition_are_recorded_across_shards(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ):
@@ -101,11 +191,13 @@ def test_the_first_n_episodes_of_every_task_and_condition_are_recorded_across_sh
     rendered: list[tuple[int, bool]] = []
     written: list[tuple[str, str, int, int]] = []
 
-    def make_env(run: TaskRun, runtime: ConditionRuntime, *, render: bool) -> ScriptedEnv:
+    def make_env(
+        run: TaskRun, runtime: ConditionRuntime, *, render: bool, frame_size: int | None
+    ) -> ScriptedEnv:
         rendered.append((plan.runs.index(run), render))
         return ScriptedEnv()
 
-    def write(frames: list[Any], directory: Path, *, run: TaskRun, episode: int, fps: int):
+    def write(frames: list[Any], directory: Path, *, run: TaskRun, episode: int, fps: float):
         written.append((run.condition.name, run.env_id, episode, len(frames)))
         return Video(env_id=run.env_id, condition=run.condition.name, episode=episode, path="x")
 
@@ -140,7 +232,9 @@ def test_nothing_is_recorded_without_a_video_directory(monkeypatch: pytest.Monke
     plan = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"], episodes=1, videos=1)
     renders: list[bool] = []
     monkeypatch.setattr(
-        runner, "make_env", lambda _run, _rt, *, render: renders.append(render) or ScriptedEnv()
+        runner,
+        "make_env",
+        lambda _run, _rt, *, render, frame_size: renders.append(render) or ScriptedEnv(),
     )
     outcome = ShardOutcome()
     run_units(
@@ -172,6 +266,23 @@ def test_the_suite_decides_how_many_episodes_are_recorded_and_the_hash_ignores_i
     assert not plan.records(plan.runs[0], 1)
 
 
+def test_a_suite_sets_the_frames_size_and_rate_outside_the_hash():
+    text = (HERE / "tiny_suite.yaml").read_text()
+    suite = Suite.model_validate(yaml.safe_load(text + "video_size: 256\nvideo_fps: 10\n"))
+    assert suite.sha256() == tiny_suite().sha256()
+    plan = build_plan(suite, "dev")
+    assert (plan.video_size, plan.video_fps) == (256, 10)
+    for bad, message in [
+        ("video_size: 100", "multiple of 16"),
+        ("video_size: 32", "greater than or equal to 64"),
+        ("video_size: 4096", "less than or equal to 2048"),
+        ("video_fps: 0", "greater than or equal to 1"),
+        ("video_size: big", "valid integer"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            Suite.model_validate(yaml.safe_load(f"{text}{bad}\n"))
+
+
 def test_a_suite_may_record_some_conditions_only_and_must_name_real_ones():
     suite = tiny_suite().model_copy(update={"videos": 1, "video_conditions": ("nominal",)})
     assert suite.sha256() == tiny_suite().sha256()
@@ -188,11 +299,14 @@ def test_a_suite_may_record_some_conditions_only_and_must_name_real_ones():
 
 
 def test_a_kubernetes_job_rebuilds_the_plan_with_the_suites_videos():
-    text = (HERE / "tiny_suite.yaml").read_text() + "videos: 1\nvideo_conditions: [nominal]\n"
+    text = (HERE / "tiny_suite.yaml").read_text() + (
+        "videos: 1\nvideo_conditions: [nominal]\nvideo_size: 128\nvideo_fps: 10\n"
+    )
     plan = build_plan(Suite.model_validate(yaml.safe_load(text)), "dev", episodes=2)
     job = evaluation_job(plan, suite_yaml=text)
     assert EvaluationJob.model_validate_json(job.canonical_json()).plan() == plan
     assert (plan.videos, plan.video_conditions) == (1, ("nominal",))
+    assert (plan.video_size, plan.video_fps) == (128, 10)
 
 
 def test_video_names_are_derived_from_the_run_and_refuse_anything_else():
@@ -212,7 +326,7 @@ def test_videos_are_h264_yuv420p_with_the_index_first_as_browsers_need(tmp_path:
 
     run = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"], episodes=1).runs[0]
     frames = [np.full((SIDE * 4, SIDE * 4, 3), 10 * i, dtype=np.uint8) for i in range(18)]
-    video = write_video(frames, tmp_path, run=run, episode=0, fps=20)
+    video = write_video(frames, tmp_path, run=run, episode=0, fps=20 / 3)  # 20 Hz, every 3rd
     path = Path(video.path)
     assert path.name == "nominal--PickCube-v1--ep0.mp4"
     assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no partial file left
@@ -227,4 +341,21 @@ def test_videos_are_h264_yuv420p_with_the_index_first_as_browsers_need(tmp_path:
     )
     assert "Video: h264" in probe.stderr, probe.stderr
     assert "yuv420p" in probe.stderr, probe.stderr
+    assert "6.67 fps" in probe.stderr, probe.stderr  # real time, whatever the stride
     assert len(imageio.mimread(path)) == 18
+
+
+def test_a_real_task_renders_frames_of_the_suites_size():
+    from evaluator.sim import make_env, to_numpy
+
+    run = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"], episodes=1).runs[0]
+    for size in (64, None):  # None: the task's own camera, 512 pixels for PickCube-v1
+        env = make_env(run, nominal(), render=True, frame_size=size)
+        try:
+            env.reset(seed=0)
+            frame = to_numpy(env.render())
+        finally:
+            env.close()
+        side = size or 512
+        assert (frame.shape, frame.dtype) == ((side, side, 3), np.uint8)
+        assert frame.std() > 0  # a scene, not a blank
