@@ -35,6 +35,23 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def end_group(process: subprocess.Popen[str]) -> None:
+    """End the demo's process group if it still runs: asked first (it stops as on Ctrl-C),
+    then killed if it has not ended within 30 s."""
+    if process.poll() is not None:
+        return
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            process.communicate(timeout=30)
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
 def demo_once(extra: list[str]) -> float:
     """Seconds from starting `manieval demo --exit-when-done` (fresh data) to its end."""
     with tempfile.TemporaryDirectory(prefix="manieval-demo-bench-") as data:
@@ -52,9 +69,9 @@ def demo_once(extra: list[str]) -> float:
         try:
             output, _ = process.communicate(timeout=TIMEOUT_S)
         except subprocess.TimeoutExpired:
-            os.killpg(process.pid, signal.SIGTERM)
-            process.communicate()
             raise SystemExit(f"{' '.join(command)} did not end within {TIMEOUT_S:.0f} s") from None
+        finally:  # overran, or the bench was interrupted: its group ends before its data goes
+            end_group(process)
         elapsed = time.perf_counter() - started
         if process.returncode != 0 or "leaderboard" not in output:
             tail = "\n".join(output.splitlines()[-20:])

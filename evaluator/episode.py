@@ -65,6 +65,8 @@ def run_episode(
     With `frames`, the episode is filmed into it: the reset state, then the state after every
     `frame_every`-th step, and after the last step whatever its number.
     """
+    if frame_every < 1:
+        raise ValueError(f"frame_every must be at least 1, not {frame_every}")
     started = time.perf_counter()
     policy_time_before = channel.policy_time_s
     raw_obs, _ = env.reset(seed=seed)

@@ -128,7 +128,8 @@ class Suite(_Strict):
     frame costs several times a step on the CPU. Not in the hash either."""
     video_size: int | None = Field(default=None, ge=64, le=2048, multiple_of=16)
     """Recorded frames are this many pixels a side (None: the task's own render camera, 512 for
-    ManiSkill's tabletop tasks); H.264 wants a multiple of 16. Not in the hash either."""
+    ManiSkill's tabletop tasks); H.264 wants a multiple of 16. Square: for square cameras set
+    by field of view, as the tabletop tasks' are. Not in the hash either."""
     video_fps: int | None = Field(default=None, ge=1, le=120)
     """At most this many frames per second of the episode's control time (None: one frame
     after every step): every k-th step is filmed, k the smallest whole number that keeps the

@@ -9,7 +9,7 @@ import typer
 from server.cli import console, migrated_sessions, settings
 
 DEMO_EPISODES = 2
-"""Episodes per task in `manieval demo`: with 3, its first leaderboard took 88-91 s on 2 cores
+"""Episodes per task in `manieval demo`: with 3, its first leaderboard took 87-91 s on 2 cores
 after the install, against the 90 s it must stay within (docs/capacity.md, "The demo")."""
 
 

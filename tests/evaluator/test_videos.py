@@ -359,3 +359,19 @@ def test_a_real_task_renders_frames_of_the_suites_size():
         side = size or 512
         assert (frame.shape, frame.dtype) == ((side, side, 3), np.uint8)
         assert frame.std() > 0  # a scene, not a blank
+
+
+def test_a_film_needs_a_positive_stride():
+    with pytest.raises(ValueError, match="frame_every must be at least 1"):
+        run_episode(
+            ScriptedEnv(),
+            StillPolicy(),
+            nominal(),
+            index=0,
+            seed=7,
+            step_limit=3,
+            bounds=(-np.ones(2, np.float32), np.ones(2, np.float32)),
+            ignore_terminations=False,
+            frames=[],
+            frame_every=0,
+        )
