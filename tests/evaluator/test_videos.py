@@ -77,19 +77,26 @@ def nominal() -> ConditionRuntime:
     return ConditionRuntime(Condition(name="nominal", params=Nominal()))
 
 
-def test_a_recording_starts_with_the_reset_state_and_has_a_frame_after_every_step():
+def film(policy: Any, *, every: int = 1, step_limit: int = 17) -> tuple[Any, list[np.ndarray]]:
+    """An episode of the scripted environment, filmed every `every` steps: result, frames."""
     frames: list[np.ndarray] = []
     result = run_episode(
         ScriptedEnv(),
-        StillPolicy(),
+        policy,
         nominal(),
         index=0,
         seed=7,
-        step_limit=17,
+        step_limit=step_limit,
         bounds=(-np.ones(2, np.float32), np.ones(2, np.float32)),
         ignore_terminations=False,
         frames=frames,
+        frame_every=every,
     )
+    return result, frames
+
+
+def test_a_recording_starts_with_the_reset_state_and_has_a_frame_after_every_step():
+    result, frames = film(StillPolicy())
     assert result.steps == 17
     assert len(frames) == 18  # the reset state, then one per step
     assert [int(f[0, 0, 0]) for f in frames] == list(range(18))
@@ -101,19 +108,7 @@ def test_a_recording_starts_with_the_reset_state_and_has_a_frame_after_every_ste
 def test_a_film_at_a_lower_rate_keeps_every_kth_step_and_always_the_last(
     every: int, filmed: list[int]
 ):
-    frames: list[np.ndarray] = []
-    run_episode(
-        ScriptedEnv(),
-        StillPolicy(),
-        nominal(),
-        index=0,
-        seed=7,
-        step_limit=17,
-        bounds=(-np.ones(2, np.float32), np.ones(2, np.float32)),
-        ignore_terminations=False,
-        frames=frames,
-        frame_every=every,
-    )
+    _, frames = film(StillPolicy(), every=every)
     assert [int(f[0, 0, 0]) for f in frames] == filmed
 
 
@@ -127,19 +122,7 @@ def test_a_policy_that_raises_is_filmed_to_the_state_it_left():
                 raise PolicyRaised("ValueError: no")
             return super().act(obs)
 
-    frames: list[np.ndarray] = []
-    result = run_episode(
-        ScriptedEnv(),
-        RaisesAtStep5(),
-        nominal(),
-        index=0,
-        seed=7,
-        step_limit=17,
-        bounds=(-np.ones(2, np.float32), np.ones(2, np.float32)),
-        ignore_terminations=False,
-        frames=frames,
-        frame_every=4,
-    )
+    result, frames = film(RaisesAtStep5(), every=4)
     assert (result.failure, result.steps) == ("policy_error", 5)
     assert [int(f[0, 0, 0]) for f in frames] == [0, 4, 5]
 
@@ -363,15 +346,4 @@ def test_a_real_task_renders_frames_of_the_suites_size():
 
 def test_a_film_needs_a_positive_stride():
     with pytest.raises(ValueError, match="frame_every must be at least 1"):
-        run_episode(
-            ScriptedEnv(),
-            StillPolicy(),
-            nominal(),
-            index=0,
-            seed=7,
-            step_limit=3,
-            bounds=(-np.ones(2, np.float32), np.ones(2, np.float32)),
-            ignore_terminations=False,
-            frames=[],
-            frame_every=0,
-        )
+        film(StillPolicy(), every=0, step_limit=3)
