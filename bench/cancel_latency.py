@@ -30,7 +30,6 @@ import os
 import random
 import shutil
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -54,6 +53,7 @@ from sqlalchemy.orm import Session, selectinload, sessionmaker
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.loopback import free_port  # noqa: E402
 from evaluator.job import evaluation_job  # noqa: E402
 from evaluator.plan import build_plan  # noqa: E402
 from evaluator.suite import load_suite  # noqa: E402
@@ -130,12 +130,6 @@ def until(
             sys.exit(f"gave up waiting for {what}")
         time.sleep(every)
     return value
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def bench_settings(data_dir: Path) -> Settings:

@@ -17,22 +17,20 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import socket
 import statistics
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.loopback import free_port  # noqa: E402
+
 MANIEVAL = REPO / ".venv" / "bin" / "manieval"
 TIMEOUT_S = 1800.0  # a demo that has not ended by then is reported as failed, not waited for
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def end_group(process: subprocess.Popen[str]) -> None:

@@ -21,7 +21,6 @@ import argparse
 import asyncio
 import json
 import random
-import socket
 import statistics
 import sys
 import tempfile
@@ -40,6 +39,7 @@ import httpx  # noqa: E402
 import uvicorn  # noqa: E402
 from sqlalchemy.orm import Session, sessionmaker  # noqa: E402
 
+from bench.loopback import free_port  # noqa: E402
 from server.app import create_app  # noqa: E402
 from server.kit.db import make_engine, session_factory, upgrade  # noqa: E402
 from server.kit.settings import Settings  # noqa: E402
@@ -74,12 +74,6 @@ def counting_reads(counts: Counts) -> None:
         return original(*args)
 
     events._poll = counted  # type: ignore[assignment]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @contextmanager

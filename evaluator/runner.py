@@ -110,7 +110,7 @@ def open_task(
     run = plan.runs[run_index]
     runtime = ConditionRuntime(run.condition)
     record = options.video_dir is not None and any(plan.records(run, i) for i, _ in episodes)
-    env = make_env(run, runtime, render=record, frame_size=plan.video_size if record else None)
+    env = make_env(run, runtime, render=record, frame_size=plan.video_size)
     return TaskEnv(env, runtime, record)
 
 
