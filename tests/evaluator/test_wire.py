@@ -682,3 +682,145 @@ messages = st.builds(
 @given(message=messages)
 def test_pack_and_unpack_message_round_trip_generated_messages(message: dict[str, Any]) -> None:
     assert_same(unpack_message(pack(message)), message)
+
+
+# --- the array payload, written and read by hand on the per-step path -----------------------
+
+
+def msgpack_array_payload(array: np.ndarray) -> bytes:
+    """What a msgpack packer writes for an array's [dtype, shape, data]: the reference."""
+    little = array.astype(array.dtype.newbyteorder("<"))
+    return msgpack.packb(  # type: ignore[no-any-return]
+        [little.dtype.str, list(array.shape), little.tobytes()], use_bin_type=True
+    )
+
+
+def ext_payload(packed: bytes) -> bytes:
+    """The payload of the one ndarray extension in a packed message."""
+    ext = msgpack.unpackb(packed, ext_hook=lambda code, data: (code, data))
+    assert ext[0] == EXT_NDARRAY
+    return ext[1]  # type: ignore[no-any-return]
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize(
+    "shape",
+    # Data lengths either side of msgpack's bin8/bin16/bin32 boundaries; shape entries either
+    # side of its fixint/uint8/uint16/uint32 boundaries.
+    [(), (0,), (1,), (255,), (256,), (65535,), (65536,), (127, 1), (128, 1), (1, 256, 1)],
+)
+def test_array_payload_is_what_a_msgpack_packer_writes(dtype: str, shape: tuple[int, ...]) -> None:
+    array = np.arange(int(np.prod(shape)), dtype=np.uint8).astype(dtype).reshape(shape)
+    assert ext_payload(pack(array)) == msgpack_array_payload(array)
+
+
+@pytest.mark.parametrize("shape", [(70000, 1), (1, 1, 65536 * 2)])
+def test_array_payload_spells_large_shapes_as_a_msgpack_packer_does(
+    shape: tuple[int, ...],
+) -> None:
+    array = np.zeros(shape, dtype="|u1")
+    assert ext_payload(pack(array)) == msgpack_array_payload(array)
+
+
+@pytest.mark.parametrize(
+    ("dtype", "shape", "spelling"),
+    [
+        ("<f4", [2, 3], "str8 dtype"),
+        ("<f4", [2, 3], "uint64 shape entries"),
+        ("<f4", [2, 3], "bin32 data"),
+        ("|b1", [4], "array32 outer list"),
+    ],
+)
+def test_arrays_spelled_other_ways_by_other_packers_decode_the_same(
+    dtype: str, shape: list[int], spelling: str
+) -> None:
+    array = np.arange(int(np.prod(shape))).astype(dtype).reshape(shape)
+    data = array.tobytes()
+    dtype_bytes = b"\xd9" + bytes([len(dtype)]) + dtype.encode()  # str8
+    fixstr = bytes([0xA0 | len(dtype)]) + dtype.encode()
+    shape_bytes = bytes([0x90 | len(shape)]) + b"".join(
+        (b"\xcf" + n.to_bytes(8, "big")) if spelling == "uint64 shape entries" else bytes([n])
+        for n in shape
+    )
+    bin_bytes = (
+        b"\xc6" + len(data).to_bytes(4, "big") if spelling == "bin32 data" else b"\xc4"
+    ) + (b"" if spelling == "bin32 data" else bytes([len(data)]))
+    outer = b"\xdc\x00\x03" if spelling == "array32 outer list" else b"\x93"
+    inner = outer + (dtype_bytes if spelling == "str8 dtype" else fixstr) + shape_bytes
+    inner += bin_bytes + data
+    message = msgpack.packb(
+        {"type": "act", "value": msgpack.ExtType(EXT_NDARRAY, inner)}, use_bin_type=True
+    )
+    assert_same_array(unpack_message(message)["value"], array)
+
+
+def test_array_data_shorter_or_longer_than_its_length_field_is_refused() -> None:
+    payload = bytearray(ext_payload(pack(np.zeros(3, np.float32))))
+    for change in (b"\x00", b""):
+        broken = bytes(payload[:-1]) if not change else bytes(payload) + change
+        message = msgpack.packb(
+            {"type": "act", "value": msgpack.ExtType(EXT_NDARRAY, broken)}, use_bin_type=True
+        )
+        with pytest.raises(ProtocolError):
+            unpack_message(message)
+
+
+@st.composite
+def mutated_array_payloads(draw: st.DrawFn) -> bytes:
+    """A canonical array payload with a few bytes overwritten, inserted or deleted."""
+    array = draw(wire_arrays)
+    data = bytearray(ext_payload(pack(array)))
+    for _ in range(draw(st.integers(0, 4))):
+        position = draw(st.integers(0, min(len(data), 24)))  # the header is where spellings are
+        action = draw(st.sampled_from(["set", "insert", "delete"]))
+        byte = draw(st.integers(0, 255))
+        if action == "set" and position < len(data):
+            data[position] = byte
+        elif action == "insert":
+            data.insert(position, byte)
+        elif position < len(data):
+            del data[position]
+    return bytes(data)
+
+
+def decoded_or_refusal(payload: bytes) -> Any:
+    message = msgpack.packb(
+        {"type": "act", "value": msgpack.ExtType(EXT_NDARRAY, payload)}, use_bin_type=True
+    )
+    try:
+        return unpack_message(message)["value"]
+    except ProtocolError:
+        return ProtocolError
+
+
+def reference_decoding(payload: bytes) -> Any:
+    """The array payload judged by msgpack itself, as the protocol specifies it."""
+    try:
+        fields = msgpack.unpackb(payload, raw=False)
+    except Exception:
+        return ProtocolError
+    if not (isinstance(fields, list) and len(fields) == 3):
+        return ProtocolError
+    dtype, shape, data = fields
+    if dtype not in ALLOWED_DTYPES or not isinstance(data, bytes):
+        return ProtocolError
+    if not isinstance(shape, list) or len(shape) > MAX_NDIM:
+        return ProtocolError
+    if not all(type(n) is int and n >= 0 for n in shape):
+        return ProtocolError
+    if int(np.prod(shape, dtype=object)) * np.dtype(dtype).itemsize != len(data):
+        return ProtocolError
+    array = np.frombuffer(data, dtype=dtype).reshape(shape)
+    if array.dtype.kind == "b":
+        array = array.view(np.uint8).astype(np.bool_)
+    return array.astype(array.dtype.newbyteorder("="))
+
+
+@settings(max_examples=400, deadline=None)
+@given(payload=mutated_array_payloads())
+def test_the_fast_array_reader_judges_every_payload_as_msgpack_does(payload: bytes) -> None:
+    got, expected = decoded_or_refusal(payload), reference_decoding(payload)
+    if expected is ProtocolError:
+        assert got is ProtocolError
+    else:
+        assert_same_array(got, expected)
