@@ -7,6 +7,7 @@ plain function call with everything else held equal; submissions always use `Rem
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -29,7 +30,10 @@ class PolicyChannel(Protocol):
 
     def reset(self, obs: Any, info: dict[str, Any]) -> None: ...
 
-    def act(self, obs: Any) -> Any: ...
+    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
+        """The policy's action for `obs`; `meanwhile` is the evaluator's own work, done while
+        the policy thinks where it thinks elsewhere, and never charged to the policy."""
+        ...
 
 
 class RemoteChannel:
@@ -64,10 +68,11 @@ class RemoteChannel:
             timeout=self._limits.call_timeout_s,
         )
 
-    def act(self, obs: Any) -> Any:
-        """One action; warm-up (JIT, lazy loading) is allowed the first-call timeout."""
+    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
+        """One action; warm-up (JIT, lazy loading) is allowed the first-call timeout.
+        `meanwhile` runs once the observation is sent, while the policy's process thinks."""
         timeout = self._limits.call_timeout_s if self._warm else self._limits.first_call_timeout_s
-        action = self._endpoint.act(obs, timeout=timeout)
+        action = self._endpoint.act(obs, timeout=timeout, meanwhile=meanwhile)
         self._warm = True
         return action
 
@@ -87,8 +92,9 @@ class InProcessChannel:
         """Start an episode."""
         self._timed(lambda: self._policy.reset(obs, info))
 
-    def act(self, obs: Any) -> Any:
-        """One action."""
+    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
+        """One action; `meanwhile` first, as the policy runs in this thread."""
+        meanwhile()
         action = self._timed(lambda: self._policy.act(obs))
         return np.asarray(action)
 

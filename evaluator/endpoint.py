@@ -110,10 +110,21 @@ class PolicyEndpoint:
             self._listener.close()
 
     def call(
-        self, message: dict[str, Any], *, expect: str, timeout: float, charged: bool = True
+        self,
+        message: dict[str, Any],
+        *,
+        expect: str,
+        timeout: float,
+        charged: bool = True,
+        meanwhile: Callable[[], None] = lambda: None,
     ) -> dict[str, Any]:
         """Send one message and wait for its answer of type `expect`; a `charged` call's time
-        counts against the budget, and the call is cut off where the budget ends."""
+        counts against the budget, and the call is cut off where the budget ends.
+
+        `meanwhile` is the evaluator's own work, run once the message is sent: the policy
+        thinks in its own process at the same time. Its duration is neither charged to the
+        policy nor taken from the call's timeout.
+        """
         conn = self._require_conn()
         # Encoded before the try: an observation too large for the SDK is our problem, not the
         # policy's, and must not be recorded as its protocol error.
@@ -123,12 +134,15 @@ class PolicyEndpoint:
             raise self._budget_exhausted(message["type"])
         started = time.monotonic()
         deadline = started + min(timeout, remaining)
+        own = 0.0  # the evaluator's own time inside the call: `meanwhile`
         try:
             self._send(conn, frame, deadline)  # a policy that stops reading must not block it
+            own = _timed(meanwhile)
+            deadline += own
             reply = self._receive(conn, deadline)
         except TimeoutError:
             if charged:
-                self.policy_time_s += time.monotonic() - started
+                self.policy_time_s += time.monotonic() - started - own
             if remaining < timeout:
                 raise self._budget_exhausted(message["type"]) from None
             raise PolicyFailure(
@@ -141,7 +155,7 @@ class PolicyEndpoint:
         except ProtocolError as exc:
             raise PolicyFailure("protocol_error", str(exc)) from None
         if charged:
-            self.policy_time_s += time.monotonic() - started
+            self.policy_time_s += time.monotonic() - started - own
         if reply["type"] == "error":
             raise PolicyRaised(str(reply.get("message", "the policy reported an error"))[:2000])
         if reply["type"] != expect:
@@ -173,11 +187,12 @@ class PolicyEndpoint:
             )
         return reply
 
-    def act(self, obs: Any, *, timeout: float) -> Any:
+    def act(self, obs: Any, *, timeout: float, meanwhile: Callable[[], None] = lambda: None) -> Any:
         """Ask for an action; the caller validates its type, shape and values."""
-        return self.call({"type": "act", "obs": obs}, expect="action", timeout=timeout).get(
-            "action"
+        reply = self.call(
+            {"type": "act", "obs": obs}, expect="action", timeout=timeout, meanwhile=meanwhile
         )
+        return reply.get("action")
 
     def _send(self, conn: socket.socket, frame: bytes, deadline: float) -> None:
         view = memoryview(frame)
@@ -260,3 +275,10 @@ def explained(exc: ProtocolError) -> str:
     if text.endswith(": ") and cause is not None:
         return text + MSGPACK_ERRORS.get(type(cause).__name__, repr(cause))
     return text
+
+
+def _timed(work: Callable[[], None]) -> float:
+    """Run `work`; how long it took."""
+    started = time.monotonic()
+    work()
+    return time.monotonic() - started

@@ -13,7 +13,7 @@ from evaluator.channel import PolicyChannel
 from evaluator.conditions import ConditionRuntime
 from evaluator.endpoint import PolicyFailure, PolicyRaised, Stopped
 from evaluator.results import EpisodeResult, FailureKind
-from evaluator.sim import flag, to_numpy
+from evaluator.sim import flag, reward_value, to_numpy
 
 
 def action_problem(action: Any, shape: tuple[int, ...]) -> str | None:
@@ -133,26 +133,51 @@ def _play(
 ) -> str | None:
     """Act and step until the episode ends; why an action could not be applied, if one was not."""
     low, high = bounds
-    while progress.steps < step_limit:
-        if should_stop():
-            raise Stopped()
-        action = channel.act(seen)
-        problem = action_problem(action, low.shape)
-        if problem:
-            return problem
-        wide = action.astype(np.float64)
-        applied = np.clip(wide, low, high)
-        progress.clipped += int(not np.array_equal(applied, wide))
-        raw_obs, reward, terminated, truncated, info = env.step(applied.astype(np.float32))
-        progress.steps += 1
-        progress.episode_return += float(to_numpy(reward))
-        progress.success_at_end = flag(info["success"])
-        progress.success_once = progress.success_once or progress.success_at_end
-        _film(env, frames, progress, every=frame_every)
-        if not ignore_terminations and (flag(terminated) or flag(truncated)):
-            return None
-        seen = runtime.observe(to_numpy(raw_obs))
-    return None
+    record = _StepRecord(progress)  # the last step's: none yet
+    try:
+        while progress.steps < step_limit:
+            if should_stop():
+                raise Stopped()
+            action = channel.act(seen, meanwhile=record)  # recorded while the policy thinks
+            record()  # a no-op if the channel did it
+            problem = action_problem(action, low.shape)
+            if problem:
+                return problem
+            wide = action.astype(np.float64)
+            applied = np.clip(wide, low, high)
+            progress.clipped += int(not np.array_equal(applied, wide))
+            raw_obs, reward, terminated, truncated, info = env.step(applied.astype(np.float32))
+            progress.steps += 1
+            record = _StepRecord(progress, reward, info["success"])
+            _film(env, frames, progress, every=frame_every)
+            if not ignore_terminations and (flag(terminated) or flag(truncated)):
+                return None
+            seen = runtime.observe(to_numpy(raw_obs))
+        return None
+    finally:
+        record()  # the last step's, unless the policy's last call already took care of it
+
+
+class _StepRecord:
+    """Adds a step's reward and success to the episode's progress, once however often it is
+    called.
+
+    The policy needs neither, so the episode loop records them while the policy thinks about
+    the next action (a remote policy thinks in its own process meanwhile), or when the episode
+    ends. The sums are the same, in the same order, either way.
+    """
+
+    def __init__(self, progress: Progress, reward: Any = None, success: Any = None) -> None:
+        self._progress = progress
+        self._step: tuple[Any, Any] | None = None if reward is None else (reward, success)
+
+    def __call__(self) -> None:
+        if self._step is not None:
+            (reward, success), self._step = self._step, None
+            progress = self._progress
+            progress.episode_return += reward_value(reward)
+            progress.success_at_end = flag(success)
+            progress.success_once = progress.success_once or progress.success_at_end
 
 
 def _film(env: Any, frames: list[np.ndarray] | None, progress: Progress, *, every: int) -> None:

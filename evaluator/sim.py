@@ -8,6 +8,7 @@ the episodes run before it in the same environment. See docs/metrics.md for the 
 from __future__ import annotations
 
 import gc
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -40,7 +41,48 @@ def make_env(
         **runtime.env_kwargs(),
     )
     _freeze_long_lived_objects()
+    defer_rewards(env)
     return env
+
+
+class DeferredReward:
+    """A step's reward, computed when asked for: the policy never sees rewards, so the episode
+    loop computes it while the policy thinks about its next action (`reward_value`). It must be
+    asked for before the next step moves the simulator on; the episode loop does so."""
+
+    def __init__(self, compute: Callable[[], Any]) -> None:
+        self._compute = compute
+
+    def value(self) -> Any:
+        """The reward, as the task computes it (a batch-of-one tensor)."""
+        return self._compute()
+
+
+def defer_rewards(env: Any) -> None:
+    """Make `env.step` return a `DeferredReward` instead of computing its reward.
+
+    ManiSkill's own step computes the reward last and only returns it, so the values are the
+    same, computed from the same state. A task whose class has its own `step` might use its
+    reward there: it is left as it is.
+    """
+    from mani_skill.envs.sapien_env import BaseEnv
+
+    base = env.unwrapped
+    if type(base).step is not BaseEnv.step:
+        return
+    compute = base.get_reward
+
+    def deferred(*, obs: Any, action: Any, info: dict[str, Any]) -> DeferredReward:
+        return DeferredReward(lambda: compute(obs=obs, action=action, info=info))
+
+    base.get_reward = deferred
+
+
+def reward_value(reward: Any) -> float:
+    """A step's reward (deferred or not) as a float."""
+    if isinstance(reward, DeferredReward):
+        reward = reward.value()
+    return float(to_numpy(reward))
 
 
 _frozen = False

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import struct
 import threading
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -104,4 +105,51 @@ def test_a_stop_interrupts_a_call_that_is_waiting_for_the_policy(endpoint: Polic
         with pytest.raises(Stopped):
             endpoint.hello(timeout=120)
     finally:
+        peer.stop()
+
+
+class Answering:
+    """A policy that completes the handshake, then answers each `act` with an action at once."""
+
+    def __init__(self, endpoint: PolicyEndpoint) -> None:
+        self._address = endpoint.address
+        self.answered = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        sock = connect(self._address, timeout=10)
+        with sock:
+            recv_message(sock)
+            sock.sendall(encode_frame({"type": "ready", "protocol": 1}))
+            while recv_message(sock)["type"] == "act":
+                sock.sendall(encode_frame({"type": "action", "action": [0.0]}))
+                self.answered.set()
+
+    def stop(self) -> None:
+        self._thread.join(5)
+
+
+def test_the_evaluators_own_work_during_a_call_is_neither_charged_nor_timed_out(
+    endpoint: PolicyEndpoint,
+):
+    peer = Answering(endpoint)
+    try:
+        endpoint.accept(timeout=10, alive=lambda: True)
+        endpoint.hello(timeout=10)
+        charged_before = endpoint.policy_time_s
+        timeout = 2.0
+        ran = []
+
+        def meanwhile() -> None:
+            assert peer.answered.wait(60)  # the policy has answered: all that is left is ours
+            time.sleep(timeout + 0.5)  # our own work, longer than the call's timeout
+            ran.append(True)
+
+        action = endpoint.act({"x": 1}, timeout=timeout, meanwhile=meanwhile)
+        assert action == [0.0]
+        assert ran == [True]
+        assert endpoint.policy_time_s - charged_before < timeout
+    finally:
+        endpoint.close()
         peer.stop()

@@ -7,6 +7,7 @@ test encodes real frames with the bundled ffmpeg to check what browsers need.
 from __future__ import annotations
 
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -69,7 +70,7 @@ class StillPolicy:
     def reset(self, obs: Any, info: dict[str, Any]) -> None:
         pass
 
-    def act(self, obs: Any) -> Any:
+    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
         return np.zeros(2, dtype=np.float32)
 
 
@@ -116,7 +117,7 @@ def test_a_policy_that_raises_is_filmed_to_the_state_it_left():
     class RaisesAtStep5(StillPolicy):
         calls = 0
 
-        def act(self, obs: Any) -> Any:
+        def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
             self.calls += 1
             if self.calls == 6:
                 raise PolicyRaised("ValueError: no")
