@@ -12,6 +12,7 @@ one-off set-up calls (`hello`, `task`), which their own timeouts bound.
 from __future__ import annotations
 
 import os
+import select
 import socket
 import tempfile
 import time
@@ -34,6 +35,7 @@ from manieval_sdk.wire import (
 
 SOCKET_NAME = "policy.sock"
 POLL_S = 0.1  # how often a wait for the policy looks whether the evaluation was asked to stop
+READ_AHEAD = 1 << 16  # bytes a read takes from the policy at most, beyond what it needs
 # msgpack raises these without a message; what they mean, for the reason the policy is shown.
 MSGPACK_ERRORS = {
     "FormatError": "a byte that starts no msgpack value (such as 0xc1, which msgpack never uses)",
@@ -79,6 +81,7 @@ class PolicyEndpoint:
         self._listener.bind(str(self.path))
         self._listener.listen(1)
         self._conn: socket.socket | None = None
+        self._inbox = bytearray()  # bytes read from the policy and not yet taken
         self.budget_s = budget_s
         self.policy_time_s = 0.0  # charged time so far: waiting for answers to reset and act
         self.should_stop: Callable[[], bool] = lambda: False  # polled while waiting: Stopped
@@ -103,9 +106,11 @@ class PolicyEndpoint:
                     )
                 self._listener.settimeout(POLL_S)
                 try:
-                    self._conn, _ = self._listener.accept()
+                    conn, _ = self._listener.accept()
                 except TimeoutError:
                     continue
+                conn.setblocking(False)
+                self._conn = conn
         finally:
             self._listener.close()
 
@@ -194,18 +199,20 @@ class PolicyEndpoint:
         )
         return reply.get("action")
 
+    # The connection never blocks (see `accept`): each read or write is one system call when
+    # the socket is ready, as it mostly is, and a poll with a short timeout when it is not.
+
     def _send(self, conn: socket.socket, frame: bytes, deadline: float) -> None:
         view = memoryview(frame)
         while view:
-            conn.settimeout(self._next_wait(deadline))
             try:
-                view = view[conn.send(view) :]
-            except TimeoutError:
-                continue
+                view = view[os.write(conn.fileno(), view) :]
+            except BlockingIOError:  # the policy is not reading: wait for room, or the deadline
+                self._wait_until_ready(conn, select.POLLOUT, deadline)
 
     def _receive(self, conn: socket.socket, deadline: float) -> dict[str, Any]:
         (length,) = HEADER.unpack(self._read(conn, HEADER.size, deadline))
-        if length > self.max_frame_bytes:  # refused before a byte of it is read
+        if length > self.max_frame_bytes:  # refused before more of it than one read is taken
             raise FrameTooLarge(f"frame of {length} bytes exceeds the {self.max_frame_bytes} limit")
         if length == 0:
             raise ProtocolError("empty frame")
@@ -216,17 +223,28 @@ class PolicyEndpoint:
             raise ProtocolError(explained(exc)) from None
 
     def _read(self, conn: socket.socket, size: int, deadline: float) -> bytes:
-        data = bytearray()
-        while len(data) < size:
-            conn.settimeout(self._next_wait(deadline))
+        """The next `size` bytes from the policy. A read takes what has arrived, up to
+        READ_AHEAD bytes: a small reply, header and all, in one system call; what it took past
+        `size` waits in the inbox for the next read."""
+        inbox = self._inbox
+        while len(inbox) < size:
             try:
-                chunk = conn.recv(min(size - len(data), 1 << 20))
-            except TimeoutError:
+                chunk = os.read(conn.fileno(), max(size - len(inbox), READ_AHEAD))
+            except BlockingIOError:  # nothing yet: wait for it, or the deadline
+                self._wait_until_ready(conn, select.POLLIN, deadline)
                 continue
             if not chunk:
                 raise PeerClosed("connection closed by the policy")
-            data += chunk
-        return bytes(data)
+            inbox += chunk
+        data = bytes(inbox[:size])
+        del inbox[:size]
+        return data
+
+    def _wait_until_ready(self, conn: socket.socket, events: int, deadline: float) -> None:
+        """Wait, at most `POLL_S` at a time, until `conn` is ready for `events`."""
+        poller = select.poll()
+        poller.register(conn, events)
+        poller.poll(self._next_wait(deadline) * 1000)
 
     def _next_wait(self, deadline: float) -> float:
         """How long the next wait on the socket may block: short, so a stop is seen at once."""

@@ -7,6 +7,7 @@ import threading
 import time
 from collections.abc import Iterator
 
+import numpy as np
 import pytest
 
 from evaluator.endpoint import PolicyEndpoint, PolicyFailure, Stopped
@@ -152,4 +153,68 @@ def test_the_evaluators_own_work_during_a_call_is_neither_charged_nor_timed_out(
         assert endpoint.policy_time_s - charged_before < timeout
     finally:
         endpoint.close()
+        peer.stop()
+
+
+class Scripted:
+    """A policy that reads the handshake, then writes the given chunks, one at a time, and
+    stays connected without reading anything more."""
+
+    def __init__(self, endpoint: PolicyEndpoint, chunks: list[bytes]) -> None:
+        self._address = endpoint.address
+        self._chunks = chunks
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        sock = connect(self._address, timeout=10)
+        with sock:
+            recv_message(sock)
+            for chunk in self._chunks:
+                sock.sendall(chunk)
+                time.sleep(0.01)  # separate writes, so the evaluator may see each on its own
+            self._done.wait(60)
+
+    def stop(self) -> None:
+        self._done.set()
+        self._thread.join(5)
+
+
+READY = encode_frame({"type": "ready", "protocol": 1})
+ACTION = encode_frame({"type": "action", "action": [0.5]})
+
+
+def test_a_reply_that_arrives_in_pieces_is_put_back_together(endpoint: PolicyEndpoint):
+    pieces = [READY[:2], READY[2:5], READY[5:9], READY[9:]]
+    peer = Scripted(endpoint, pieces)
+    try:
+        endpoint.accept(timeout=10, alive=lambda: True)
+        assert endpoint.hello(timeout=30)["protocol"] == 1
+    finally:
+        peer.stop()
+
+
+def test_a_frame_read_with_the_one_before_it_answers_the_next_call(endpoint: PolicyEndpoint):
+    peer = Scripted(endpoint, [READY + ACTION])  # two replies in one write
+    try:
+        endpoint.accept(timeout=10, alive=lambda: True)
+        endpoint.hello(timeout=30)
+        assert endpoint.act({"x": 1}, timeout=30) == [0.5]
+    finally:
+        peer.stop()
+
+
+def test_a_policy_that_stops_reading_cannot_hold_a_call_past_its_timeout(
+    endpoint: PolicyEndpoint,
+):
+    peer = Scripted(endpoint, [READY])  # then never reads again
+    try:
+        endpoint.accept(timeout=10, alive=lambda: True)
+        endpoint.hello(timeout=30)
+        big = np.zeros(8 << 20, dtype=np.uint8)  # far more than a socket's buffer holds
+        with pytest.raises(PolicyFailure, match="no answer to 'act' within 1s") as failed:
+            endpoint.act(big, timeout=1.0)
+        assert failed.value.kind == "policy_timeout"
+    finally:
         peer.stop()
