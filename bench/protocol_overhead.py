@@ -4,7 +4,9 @@ Prints steps/s of both and their ratio for state and rgb (128x128) observations.
 keeps its own environment and the two take turns episode by episode (the same seed for both,
 in alternating order), so that what else the machine does hits both alike: a run of seconds
 on one path would meet another load than the other's. The ratio is of all the rounds' steps/s
-together, with the spread of the rounds' own ratios beside it. The last line is
+together, with the spread of the rounds' own ratios beside it, and what the protocol adds to
+each step in microseconds; then the floor under that on this machine, a bare round trip
+between two processes (bench/socket_round_trip.py). The last line is
 `protocol_state_ratio <ratio>` (the aim: 0.97 for state, 0.95 for rgb).
 
     .venv/bin/python bench/protocol_overhead.py [--rounds 9] [--episodes 6] [--steps 100]
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import subprocess
 import sys
 from pathlib import Path
 
@@ -139,7 +142,7 @@ def main() -> None:
     parser.add_argument("--rgb-steps", type=int, default=20)
     args = parser.parse_args()
     head = f"{'obs_mode':<12}{'in-process steps/s':>20}{'protocol steps/s':>18}{'ratio':>8}"
-    print(head + "  rounds' ratios (min-max)")
+    print(head + f"{'us/step':>9}  rounds' ratios (min-max)")
     figures = {}
     for obs_mode, episodes, steps in (
         ("state_dict", args.episodes, args.steps),
@@ -147,10 +150,19 @@ def main() -> None:
     ):
         local, remote, ratios = measure(obs_mode, args.rounds, episodes, steps)
         figures[obs_mode] = ratio = remote / local
+        overhead_us = (1 / remote - 1 / local) * 1e6
         print(
-            f"{obs_mode:<12}{local:>20.1f}{remote:>18.1f}{ratio:>8.3f}"
+            f"{obs_mode:<12}{local:>20.1f}{remote:>18.1f}{ratio:>8.3f}{overhead_us:>9.0f}"
             f"  {min(ratios):.3f}-{max(ratios):.3f}"
         )
+    floor = subprocess.run(
+        [sys.executable, str(Path(__file__).parent / "socket_round_trip.py")],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    print("us/step: what the protocol adds to a step. The floor under it on this machine,")
+    print(floor.stdout.splitlines()[0])
     print(f"protocol_state_ratio {figures['state_dict']:.3f}")
 
 
