@@ -1,7 +1,9 @@
-"""The evaluator's end of the protocol against a scripted peer: handshake and malformed frames."""
+"""The evaluator's end of the protocol against a scripted peer: handshake, framing, malformed
+frames, and what a call charges to the policy."""
 
 from __future__ import annotations
 
+import socket
 import struct
 import threading
 import time
@@ -14,23 +16,32 @@ from evaluator.endpoint import PolicyEndpoint, PolicyFailure, Stopped
 from manieval_sdk.serve import connect
 from manieval_sdk.wire import encode_frame, recv_message
 
+READY = encode_frame({"type": "ready", "protocol": 1})
+ACTION = encode_frame({"type": "action", "action": [0.5]})
+
 
 class Peer:
-    """A policy that answers `hello` with whatever bytes it is given, then stays quiet."""
+    """A policy that reads the handshake, then writes the given chunks one at a time (a reply,
+    pieces of one, several at once, or nothing) and stays connected without reading more."""
 
-    def __init__(self, endpoint: PolicyEndpoint, reply: bytes) -> None:
+    def __init__(self, endpoint: PolicyEndpoint, *chunks: bytes) -> None:
         self._address = endpoint.address
-        self._reply = reply
+        self._chunks = chunks
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        sock = connect(self._address, timeout=10)
-        with sock:
+        with connect(self._address, timeout=10) as sock:
             recv_message(sock)
-            sock.sendall(self._reply)
-            self._done.wait(30)
+            self.serve(sock)
+
+    def serve(self, sock: socket.socket) -> None:
+        """What the policy does once it has read the handshake."""
+        for chunk in self._chunks:
+            sock.sendall(chunk)
+            time.sleep(0.01)  # separate writes, so the evaluator may see each on its own
+        self._done.wait(60)
 
     def stop(self) -> None:
         self._done.set()
@@ -99,7 +110,7 @@ def test_a_malformed_reply_is_refused_with_a_reason_that_says_what_is_wrong(
 def test_a_stop_interrupts_a_call_that_is_waiting_for_the_policy(endpoint: PolicyEndpoint):
     stop = threading.Event()
     endpoint.should_stop = stop.is_set
-    peer = Peer(endpoint, b"")  # reads hello, never answers
+    peer = Peer(endpoint)  # reads hello, never answers
     try:
         endpoint.accept(timeout=10, alive=lambda: True)
         threading.Timer(0.5, stop.set).start()
@@ -109,26 +120,18 @@ def test_a_stop_interrupts_a_call_that_is_waiting_for_the_policy(endpoint: Polic
         peer.stop()
 
 
-class Answering:
+class Answering(Peer):
     """A policy that completes the handshake, then answers each `act` with an action at once."""
 
     def __init__(self, endpoint: PolicyEndpoint) -> None:
-        self._address = endpoint.address
         self.answered = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__(endpoint)
 
-    def _run(self) -> None:
-        sock = connect(self._address, timeout=10)
-        with sock:
-            recv_message(sock)
-            sock.sendall(encode_frame({"type": "ready", "protocol": 1}))
-            while recv_message(sock)["type"] == "act":
-                sock.sendall(encode_frame({"type": "action", "action": [0.0]}))
-                self.answered.set()
-
-    def stop(self) -> None:
-        self._thread.join(5)
+    def serve(self, sock: socket.socket) -> None:
+        sock.sendall(READY)
+        while recv_message(sock)["type"] == "act":
+            sock.sendall(encode_frame({"type": "action", "action": [0.0]}))
+            self.answered.set()
 
 
 def test_the_evaluators_own_work_during_a_call_is_neither_charged_nor_timed_out(
@@ -156,38 +159,9 @@ def test_the_evaluators_own_work_during_a_call_is_neither_charged_nor_timed_out(
         peer.stop()
 
 
-class Scripted:
-    """A policy that reads the handshake, then writes the given chunks, one at a time, and
-    stays connected without reading anything more."""
-
-    def __init__(self, endpoint: PolicyEndpoint, chunks: list[bytes]) -> None:
-        self._address = endpoint.address
-        self._chunks = chunks
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        sock = connect(self._address, timeout=10)
-        with sock:
-            recv_message(sock)
-            for chunk in self._chunks:
-                sock.sendall(chunk)
-                time.sleep(0.01)  # separate writes, so the evaluator may see each on its own
-            self._done.wait(60)
-
-    def stop(self) -> None:
-        self._done.set()
-        self._thread.join(5)
-
-
-READY = encode_frame({"type": "ready", "protocol": 1})
-ACTION = encode_frame({"type": "action", "action": [0.5]})
-
-
 def test_a_reply_that_arrives_in_pieces_is_put_back_together(endpoint: PolicyEndpoint):
     pieces = [READY[:2], READY[2:5], READY[5:9], READY[9:]]
-    peer = Scripted(endpoint, pieces)
+    peer = Peer(endpoint, *pieces)
     try:
         endpoint.accept(timeout=10, alive=lambda: True)
         assert endpoint.hello(timeout=30)["protocol"] == 1
@@ -196,7 +170,7 @@ def test_a_reply_that_arrives_in_pieces_is_put_back_together(endpoint: PolicyEnd
 
 
 def test_a_frame_read_with_the_one_before_it_answers_the_next_call(endpoint: PolicyEndpoint):
-    peer = Scripted(endpoint, [READY + ACTION])  # two replies in one write
+    peer = Peer(endpoint, READY + ACTION)  # two replies in one write
     try:
         endpoint.accept(timeout=10, alive=lambda: True)
         endpoint.hello(timeout=30)
@@ -208,7 +182,7 @@ def test_a_frame_read_with_the_one_before_it_answers_the_next_call(endpoint: Pol
 def test_a_policy_that_stops_reading_cannot_hold_a_call_past_its_timeout(
     endpoint: PolicyEndpoint,
 ):
-    peer = Scripted(endpoint, [READY])  # then never reads again
+    peer = Peer(endpoint, READY)  # then never reads again
     try:
         endpoint.accept(timeout=10, alive=lambda: True)
         endpoint.hello(timeout=30)

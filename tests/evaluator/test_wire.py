@@ -580,12 +580,14 @@ SAMPLE_MESSAGES = [
 ]
 
 
-@st.composite
-def corrupted_payloads(draw: st.DrawFn) -> bytes:
-    """A valid payload with a few bytes overwritten, inserted or deleted, maybe cut short."""
-    data = bytearray(draw(st.sampled_from(SAMPLE_MESSAGES)))
-    for _ in range(draw(st.integers(0, 6))):
-        position = draw(st.integers(0, len(data)))
+def mutated(
+    draw: st.DrawFn, payload: bytes, *, changes: int, within: int | None = None
+) -> bytearray:
+    """`payload` with up to `changes` bytes overwritten, inserted or deleted (at offsets up to
+    `within`, if given)."""
+    data = bytearray(payload)
+    for _ in range(draw(st.integers(0, changes))):
+        position = draw(st.integers(0, len(data) if within is None else min(len(data), within)))
         action = draw(st.sampled_from(["set", "insert", "delete"]))
         byte = draw(st.integers(0, 255))
         if action == "set" and position < len(data):
@@ -594,6 +596,13 @@ def corrupted_payloads(draw: st.DrawFn) -> bytes:
             data.insert(position, byte)
         elif position < len(data):
             del data[position]
+    return data
+
+
+@st.composite
+def corrupted_payloads(draw: st.DrawFn) -> bytes:
+    """A valid payload with a few bytes overwritten, inserted or deleted, maybe cut short."""
+    data = mutated(draw, draw(st.sampled_from(SAMPLE_MESSAGES)), changes=6)
     cut = draw(st.integers(0, len(data)))
     return bytes(data[: len(data) if draw(st.booleans()) else cut])
 
@@ -769,18 +778,8 @@ def test_array_data_shorter_or_longer_than_its_length_field_is_refused() -> None
 def mutated_array_payloads(draw: st.DrawFn) -> bytes:
     """A canonical array payload with a few bytes overwritten, inserted or deleted."""
     array = draw(wire_arrays)
-    data = bytearray(ext_payload(pack(array)))
-    for _ in range(draw(st.integers(0, 4))):
-        position = draw(st.integers(0, min(len(data), 24)))  # the header is where spellings are
-        action = draw(st.sampled_from(["set", "insert", "delete"]))
-        byte = draw(st.integers(0, 255))
-        if action == "set" and position < len(data):
-            data[position] = byte
-        elif action == "insert":
-            data.insert(position, byte)
-        elif position < len(data):
-            del data[position]
-    return bytes(data)
+    # Mostly in the first bytes: the dtype, shape and length, where spellings differ.
+    return bytes(mutated(draw, ext_payload(pack(array)), changes=4, within=24))
 
 
 def decoded_or_refusal(payload: bytes) -> Any:
