@@ -3,7 +3,9 @@ shard.
 
 An evaluation's shards run in the processes of a `WarmPool`. The pool's processes are spawned
 once, import everything an episode needs, and stay: an evaluation leases a pool (`leased`),
-runs its shards in it and gives it back for the next evaluation. A shard then starts in
+runs its shards in it and gives it back for the next evaluation (a pool that no evaluation
+leases for `IDLE_LIFETIME_S` ends its processes, to be started again on demand). A shard
+then starts in
 milliseconds instead of seconds, so `--workers N` pays from the first episode and a worker
 machine evaluates on all its cores. Each process is a separate interpreter, so two shards (or
 two evaluations) never wait on one another's Python lock: in one process, two threads stepping
@@ -46,6 +48,9 @@ ORPHAN_GRACE_S = 30.0
 """How long an orphaned evaluator process gives its shard to stop its policy, before it ends."""
 END_WAIT_S = 30.0
 """How long the lessee waits, once every shard has returned, for the last events they sent."""
+IDLE_LIFETIME_S = 600.0
+"""How long a pool waits for its next evaluation before its processes end, giving their memory
+back: a worker that evaluates nothing for a while holds none."""
 
 
 ProcessSetup = tuple[Callable[..., object], tuple[Any, ...]]
@@ -88,6 +93,7 @@ class WarmPool:
             initargs=(self._events, self._stop, _process_setup, os.getpid()),
         )
         self.usable = True
+        self.expiry: threading.Timer | None = None  # while idle: ends it at the end of its lifetime
 
     def warm(self) -> None:
         """Start every process and wait until each has imported what an episode needs."""
@@ -205,16 +211,38 @@ def leased(processes: int) -> Iterator[WarmPool]:
     with _idle_lock:
         idle = _idle.get(processes, [])
         pool = idle.pop() if idle else None
+        if pool is not None and pool.expiry is not None:
+            pool.expiry.cancel()
+            pool.expiry = None
     if pool is None:
         pool = WarmPool(processes)
     try:
         yield pool
     finally:
         if pool.usable:
-            with _idle_lock:
-                _idle.setdefault(processes, []).append(pool)
+            _keep_idle(pool)
         else:
             pool.close()
+
+
+def _keep_idle(pool: WarmPool) -> None:
+    """Put `pool` with the idle ones, to end after `IDLE_LIFETIME_S` unless leased before."""
+    expiry = threading.Timer(IDLE_LIFETIME_S, _expire, args=(pool,))
+    expiry.daemon = True
+    with _idle_lock:
+        pool.expiry = expiry
+        _idle.setdefault(pool.processes, []).append(pool)
+    expiry.start()
+
+
+def _expire(pool: WarmPool) -> None:
+    with _idle_lock:
+        idle = _idle.get(pool.processes, [])
+        if pool.expiry is not threading.current_thread() or pool not in idle:
+            return  # leased (and maybe idle again) since this timer started
+        idle.remove(pool)
+        pool.expiry = None
+    pool.close()
 
 
 def can_start_processes() -> bool:
@@ -235,6 +263,8 @@ def close_idle() -> None:
         pools = [pool for pools in _idle.values() for pool in pools]
         _idle.clear()
     for pool in pools:
+        if pool.expiry is not None:
+            pool.expiry.cancel()
         pool.close()
 
 

@@ -110,6 +110,44 @@ def test_a_pool_that_lost_a_process_while_idle_is_replaced() -> None:
         assert again is not pool
 
 
+def test_a_pool_left_idle_for_its_lifetime_ends_its_processes(monkeypatch: Any) -> None:
+    monkeypatch.setattr(pools, "IDLE_LIFETIME_S", 0.5)
+    with leased(3) as pool:  # a size of its own: no other test's idle pool is leased here
+        pool.warm()
+        processes = [psutil.Process(p.pid) for p in pool._executor._processes.values()]  # type: ignore[attr-defined]
+    assert len(processes) == 3
+    _, alive = psutil.wait_procs(processes, timeout=300)  # far past the lifetime: ended
+    assert alive == []
+    assert not pool.usable
+    with leased(3) as fresh:
+        assert fresh is not pool
+
+
+def test_a_pool_leased_again_lives_a_whole_lifetime_from_its_last_return(
+    monkeypatch: Any,
+) -> None:
+    monkeypatch.setattr(pools, "IDLE_LIFETIME_S", 3600.0)
+    with leased(4) as pool:  # a size of its own, and never run: no process is started
+        pass
+    earlier = pool.expiry
+    assert earlier is not None
+    with leased(4) as again:
+        assert again is pool
+    earlier.function(*earlier.args)  # that idle time's end, come late: the pool lives on
+    assert pool.usable
+    with pools._idle_lock:
+        assert pool in pools._idle[4]
+    monkeypatch.setattr(pools, "IDLE_LIFETIME_S", 0.3)
+    with leased(4) as again:
+        assert again is pool
+    deadline = time.monotonic() + 300
+    while pool.usable:  # its own lifetime does end it
+        assert time.monotonic() < deadline, "the idle pool never ended"
+        time.sleep(0.05)
+    with pools._idle_lock:
+        assert pool not in pools._idle.get(4, [])
+
+
 def test_after_a_cancel_the_pool_serves_the_next_evaluation_whole() -> None:
     plan = tiny_plan(conditions=["nominal"])
     short, long = plan.runs
