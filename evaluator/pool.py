@@ -5,9 +5,8 @@ An evaluation's shards run in the processes of a `WarmPool`. The pool's processe
 once, import everything an episode needs, and stay: an evaluation leases a pool (`leased`),
 runs its shards in it and gives it back for the next evaluation (a pool that no evaluation
 leases for `IDLE_LIFETIME_S` ends its processes, to be started again on demand). A shard
-then starts in
-milliseconds instead of seconds, so `--workers N` pays from the first episode and a worker
-machine evaluates on all its cores. Each process is a separate interpreter, so two shards (or
+then starts in milliseconds instead of seconds, so `--workers N` pays from the first episode
+and a worker machine evaluates on all its cores. Each process is a separate interpreter, so two shards (or
 two evaluations) never wait on one another's Python lock: in one process, two threads stepping
 simulators run slower together than one alone.
 
