@@ -6,9 +6,9 @@ once, import everything an episode needs, and stay: an evaluation leases a pool 
 runs its shards in it and gives it back for the next evaluation (a pool that no evaluation
 leases for `IDLE_LIFETIME_S` ends its processes, to be started again on demand). A shard
 then starts in milliseconds instead of seconds, so `--workers N` pays from the first episode
-and a worker machine evaluates on all its cores. Each process is a separate interpreter, so two shards (or
-two evaluations) never wait on one another's Python lock: in one process, two threads stepping
-simulators run slower together than one alone.
+and a worker machine evaluates on all its cores. Each process is a separate interpreter, so
+two shards (or two evaluations) never wait on one another's Python lock: in one process, two
+threads stepping simulators run slower together than one alone.
 
 Nothing of an evaluation outlives it in a process but imported modules: every episode rebuilds
 its scene (`evaluator.sim`), environments are closed at the end of their task run, and each
