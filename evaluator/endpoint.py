@@ -121,14 +121,17 @@ class PolicyEndpoint:
         expect: str,
         timeout: float,
         charged: bool = True,
-        meanwhile: Callable[[], None] = lambda: None,
+        meanwhile: Callable[[], None] | None = None,
     ) -> dict[str, Any]:
         """Send one message and wait for its answer of type `expect`; a `charged` call's time
         counts against the budget, and the call is cut off where the budget ends.
 
-        `meanwhile` is the evaluator's own work, run once the message is sent: the policy
-        thinks in its own process at the same time. Its duration is neither charged to the
-        policy nor taken from the call's timeout.
+        `meanwhile` is the evaluator's own work, run once the message is sent, while the policy
+        thinks in its own process. A reply complete by the time it ends is charged only the
+        sending (when within `meanwhile` it came is not known: the evaluator's time is never
+        charged); any other reply is charged all the time since the message was sent, as the
+        policy was still at work when the evaluator was done. A reply already complete is
+        taken even where `meanwhile` ran past the call's deadline.
         """
         conn = self._require_conn()
         # Encoded before the try: an observation too large for the SDK is our problem, not the
@@ -139,15 +142,19 @@ class PolicyEndpoint:
             raise self._budget_exhausted(message["type"])
         started = time.monotonic()
         deadline = started + min(timeout, remaining)
-        own = 0.0  # the evaluator's own time inside the call: `meanwhile`
+        uncharged = 0.0  # the evaluator's own time in the call, when the policy was done first
         try:
+            self._refuse_unasked(conn)
             self._send(conn, frame, deadline)  # a policy that stops reading must not block it
-            own = _timed(meanwhile)
-            deadline += own
+            if meanwhile is not None:
+                sent = time.monotonic()
+                meanwhile()
+                if self._has_whole_frame(conn):
+                    uncharged = time.monotonic() - sent
             reply = self._receive(conn, deadline)
         except TimeoutError:
             if charged:
-                self.policy_time_s += time.monotonic() - started - own
+                self.policy_time_s += time.monotonic() - started
             if remaining < timeout:
                 raise self._budget_exhausted(message["type"]) from None
             raise PolicyFailure(
@@ -160,7 +167,7 @@ class PolicyEndpoint:
         except ProtocolError as exc:
             raise PolicyFailure("protocol_error", str(exc)) from None
         if charged:
-            self.policy_time_s += time.monotonic() - started - own
+            self.policy_time_s += time.monotonic() - started - uncharged
         if reply["type"] == "error":
             raise PolicyRaised(str(reply.get("message", "the policy reported an error"))[:2000])
         if reply["type"] != expect:
@@ -192,7 +199,7 @@ class PolicyEndpoint:
             )
         return reply
 
-    def act(self, obs: Any, *, timeout: float, meanwhile: Callable[[], None] = lambda: None) -> Any:
+    def act(self, obs: Any, *, timeout: float, meanwhile: Callable[[], None] | None = None) -> Any:
         """Ask for an action; the caller validates its type, shape and values."""
         reply = self.call(
             {"type": "act", "obs": obs}, expect="action", timeout=timeout, meanwhile=meanwhile
@@ -221,6 +228,34 @@ class PolicyEndpoint:
             return unpack_message(payload)
         except ProtocolError as exc:
             raise ProtocolError(explained(exc)) from None
+
+    def _refuse_unasked(self, conn: socket.socket) -> None:
+        """Before a call: anything the policy sent since its last reply is a frame nobody asked
+        for (an answer sent ahead of its question, say), a breach of the protocol."""
+        if not self._inbox:
+            try:
+                self._inbox += self._read_available(conn)
+            except BlockingIOError:
+                return
+        raise ProtocolError("the policy sent a frame nobody asked for")
+
+    def _has_whole_frame(self, conn: socket.socket) -> bool:
+        """Whether a whole frame from the policy has arrived, without waiting for one."""
+        try:
+            self._inbox += self._read_available(conn)
+        except (BlockingIOError, PeerClosed):  # nothing more yet; a close is seen when reading
+            pass
+        if len(self._inbox) < HEADER.size:
+            return False
+        length: int = HEADER.unpack_from(self._inbox)[0]
+        return len(self._inbox) - HEADER.size >= length
+
+    def _read_available(self, conn: socket.socket) -> bytes:
+        """What has arrived, up to READ_AHEAD bytes; BlockingIOError when nothing has."""
+        chunk = os.read(conn.fileno(), READ_AHEAD)
+        if not chunk:
+            raise PeerClosed("connection closed by the policy")
+        return chunk
 
     def _read(self, conn: socket.socket, size: int, deadline: float) -> bytes:
         """The next `size` bytes from the policy. A read takes what has arrived, up to
@@ -293,10 +328,3 @@ def explained(exc: ProtocolError) -> str:
     if text.endswith(": ") and cause is not None:
         return text + MSGPACK_ERRORS.get(type(cause).__name__, repr(cause))
     return text
-
-
-def _timed(work: Callable[[], None]) -> float:
-    """Run `work`; how long it took."""
-    started = time.monotonic()
-    work()
-    return time.monotonic() - started

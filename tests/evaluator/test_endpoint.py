@@ -27,6 +27,7 @@ class Peer:
     def __init__(self, endpoint: PolicyEndpoint, *chunks: bytes) -> None:
         self._address = endpoint.address
         self._chunks = chunks
+        self.sent = threading.Event()  # every chunk is written
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -41,6 +42,7 @@ class Peer:
         for chunk in self._chunks:
             sock.sendall(chunk)
             time.sleep(0.01)  # separate writes, so the evaluator may see each on its own
+        self.sent.set()
         self._done.wait(60)
 
     def stop(self) -> None:
@@ -121,17 +123,42 @@ def test_a_stop_interrupts_a_call_that_is_waiting_for_the_policy(endpoint: Polic
 
 
 class Answering(Peer):
-    """A policy that completes the handshake, then answers each `act` with an action at once."""
+    """A policy that completes the handshake, then answers each `act` with an action: at once,
+    or once `go` is set."""
 
     def __init__(self, endpoint: PolicyEndpoint) -> None:
         self.answered = threading.Event()
+        self.go = threading.Event()
+        self.go.set()
         super().__init__(endpoint)
 
     def serve(self, sock: socket.socket) -> None:
         sock.sendall(READY)
         while recv_message(sock)["type"] == "act":
+            self.go.wait(60)
             sock.sendall(encode_frame({"type": "action", "action": [0.0]}))
             self.answered.set()
+
+
+def test_a_policy_still_at_work_when_the_evaluators_own_work_ends_is_charged_it_all(
+    endpoint: PolicyEndpoint,
+):
+    peer = Answering(endpoint)
+    try:
+        endpoint.accept(timeout=10, alive=lambda: True)
+        endpoint.hello(timeout=10)
+        charged_before = endpoint.policy_time_s
+        peer.go.clear()  # the policy thinks until the evaluator's work is done, and then some
+
+        def meanwhile() -> None:
+            time.sleep(0.5)
+            threading.Timer(0.2, peer.go.set).start()
+
+        assert endpoint.act({"x": 1}, timeout=60, meanwhile=meanwhile) == [0.0]
+        assert endpoint.policy_time_s - charged_before >= 0.5 + 0.2
+    finally:
+        endpoint.close()
+        peer.stop()
 
 
 def test_the_evaluators_own_work_during_a_call_is_neither_charged_nor_timed_out(
@@ -169,12 +196,18 @@ def test_a_reply_that_arrives_in_pieces_is_put_back_together(endpoint: PolicyEnd
         peer.stop()
 
 
-def test_a_frame_read_with_the_one_before_it_answers_the_next_call(endpoint: PolicyEndpoint):
-    peer = Peer(endpoint, READY + ACTION)  # two replies in one write
+@pytest.mark.parametrize("writes", [[READY + ACTION], [READY, ACTION]], ids=["one", "two"])
+def test_an_answer_sent_before_its_question_is_a_protocol_error(
+    endpoint: PolicyEndpoint, writes: list[bytes]
+):
+    peer = Peer(endpoint, *writes)  # the handshake's reply, and an action nobody asked for
     try:
         endpoint.accept(timeout=10, alive=lambda: True)
         endpoint.hello(timeout=30)
-        assert endpoint.act({"x": 1}, timeout=30) == [0.5]
+        assert peer.sent.wait(60)  # it is all here, read with the handshake or still waiting
+        with pytest.raises(PolicyFailure, match="a frame nobody asked for") as failed:
+            endpoint.act({"x": 1}, timeout=30)
+        assert failed.value.kind == "protocol_error"
     finally:
         peer.stop()
 

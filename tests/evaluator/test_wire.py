@@ -823,3 +823,9 @@ def test_the_fast_array_reader_judges_every_payload_as_msgpack_does(payload: byt
         assert got is ProtocolError
     else:
         assert_same_array(got, expected)
+
+
+def test_a_masked_array_sends_its_data_as_it_always_has() -> None:
+    masked = np.ma.masked_array([1.0, 2.0, 3.0], mask=[False, True, False], dtype=np.float32)
+    received = unpack_message(pack({"type": "act", "obs": masked}))["obs"]
+    assert_same_array(received, np.array([1.0, 2.0, 3.0], dtype=np.float32))

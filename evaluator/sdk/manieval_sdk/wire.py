@@ -81,7 +81,7 @@ def _encode_array(array: np.ndarray) -> msgpack.ExtType:
         packed_shape = msgpack.packb(list(shape))
         if len(_SHAPES) < 256:
             _SHAPES[shape] = packed_shape
-    data = array.tobytes()  # C order, whatever the array's layout
+    data = np.ndarray.tobytes(array)  # C order, whatever the layout; a masked array: its data
     return msgpack.ExtType(
         EXT_NDARRAY, b"\x93\xa3" + code.encode() + packed_shape + _bin_header(len(data)) + data
     )
