@@ -140,50 +140,48 @@ class Answering(Peer):
             self.answered.set()
 
 
-def test_a_policy_still_at_work_when_the_evaluators_own_work_ends_is_charged_it_all(
-    endpoint: PolicyEndpoint,
-):
+@pytest.fixture
+def answering(endpoint: PolicyEndpoint) -> Iterator[Answering]:
+    """An `Answering` policy, connected and past the handshake."""
     peer = Answering(endpoint)
     try:
         endpoint.accept(timeout=10, alive=lambda: True)
         endpoint.hello(timeout=10)
-        charged_before = endpoint.policy_time_s
-        peer.go.clear()  # the policy thinks until the evaluator's work is done, and then some
-
-        def meanwhile() -> None:
-            time.sleep(0.5)
-            threading.Timer(0.2, peer.go.set).start()
-
-        assert endpoint.act({"x": 1}, timeout=60, meanwhile=meanwhile) == [0.0]
-        assert endpoint.policy_time_s - charged_before >= 0.5 + 0.2
+        yield peer
     finally:
-        endpoint.close()
+        endpoint.close()  # the policy's loop ends on `close`
         peer.stop()
+
+
+def test_a_policy_still_at_work_when_the_evaluators_own_work_ends_is_charged_it_all(
+    endpoint: PolicyEndpoint, answering: Answering
+):
+    charged_before = endpoint.policy_time_s
+    answering.go.clear()  # the policy thinks until the evaluator's work is done, and then some
+
+    def meanwhile() -> None:
+        time.sleep(0.5)
+        threading.Timer(0.2, answering.go.set).start()
+
+    assert endpoint.act({"x": 1}, timeout=60, meanwhile=meanwhile) == [0.0]
+    assert endpoint.policy_time_s - charged_before >= 0.5 + 0.2
 
 
 def test_the_evaluators_own_work_during_a_call_is_neither_charged_nor_timed_out(
-    endpoint: PolicyEndpoint,
+    endpoint: PolicyEndpoint, answering: Answering
 ):
-    peer = Answering(endpoint)
-    try:
-        endpoint.accept(timeout=10, alive=lambda: True)
-        endpoint.hello(timeout=10)
-        charged_before = endpoint.policy_time_s
-        timeout = 2.0
-        ran = []
+    charged_before = endpoint.policy_time_s
+    timeout = 2.0
+    ran = []
 
-        def meanwhile() -> None:
-            assert peer.answered.wait(60)  # the policy has answered: all that is left is ours
-            time.sleep(timeout + 0.5)  # our own work, longer than the call's timeout
-            ran.append(True)
+    def meanwhile() -> None:
+        assert answering.answered.wait(60)  # the policy has answered: all that is left is ours
+        time.sleep(timeout + 0.5)  # our own work, longer than the call's timeout
+        ran.append(True)
 
-        action = endpoint.act({"x": 1}, timeout=timeout, meanwhile=meanwhile)
-        assert action == [0.0]
-        assert ran == [True]
-        assert endpoint.policy_time_s - charged_before < timeout
-    finally:
-        endpoint.close()
-        peer.stop()
+    assert endpoint.act({"x": 1}, timeout=timeout, meanwhile=meanwhile) == [0.0]
+    assert ran == [True]
+    assert endpoint.policy_time_s - charged_before < timeout
 
 
 def test_a_reply_that_arrives_in_pieces_is_put_back_together(endpoint: PolicyEndpoint):
