@@ -49,7 +49,7 @@ def plan_for(obs_mode: str, episodes: int, steps: int) -> EvaluationPlan:
 
 
 class PolicyPath:
-    """One way of calling the policy, with its own environment, and the time it took."""
+    """One way of calling the policy, with its own environment."""
 
     def __init__(self, plan: EvaluationPlan, channel: PolicyChannel) -> None:
         self.channel = channel
@@ -60,8 +60,6 @@ class PolicyPath:
         )
         channel.start_task(task_spec(run, self.task.env, self.step_limit))
         self.ignore_terminations = plan.ignore_terminations
-        self.steps = 0
-        self.seconds = 0.0
 
     def episode(self, seed: int) -> tuple[int, float]:
         """Play one episode; its steps and wall time."""
@@ -76,8 +74,6 @@ class PolicyPath:
             ignore_terminations=self.ignore_terminations,
         )
         assert result.failure is None, result
-        self.steps += result.steps
-        self.seconds += result.wall_time_s
         return result.steps, result.wall_time_s
 
     def close(self) -> None:
@@ -112,15 +108,16 @@ def measure(
         try:
             for path in paths:  # warm both (first calls, first episode) before measuring
                 path.episode(plan.runs[0].seeds[0])
-                path.steps, path.seconds = 0, 0.0
+            totals = [[0, 0.0], [0, 0.0]]  # steps and seconds of each path, all rounds
             ratios = []
             for round_no in range(rounds):
                 rates = [[0, 0.0], [0, 0.0]]
                 for n, seed in enumerate(plan.runs[0].seeds):
                     for which in (0, 1) if (round_no + n) % 2 == 0 else (1, 0):
                         steps, seconds = paths[which].episode(seed)
-                        rates[which][0] += steps
-                        rates[which][1] += seconds
+                        for tally in (rates[which], totals[which]):
+                            tally[0] += steps
+                            tally[1] += seconds
                 local, remote = (steps / seconds for steps, seconds in rates)
                 ratios.append(remote / local)
         finally:
@@ -129,7 +126,7 @@ def measure(
     finally:
         endpoint.close()
         process.stop()
-    local_rate, remote_rate = (path.steps / path.seconds for path in paths)
+    local_rate, remote_rate = (steps / seconds for steps, seconds in totals)
     return local_rate, remote_rate, ratios
 
 

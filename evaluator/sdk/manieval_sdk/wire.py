@@ -49,7 +49,9 @@ class CallTimeout(TimeoutError):
 _packers = threading.local()  # a msgpack Packer is reusable but not thread-safe
 
 
-_DTYPE_CODES = {np.dtype(code): code for code in ALLOWED_DTYPES}  # little-endian dtypes
+_DTYPES = {code: np.dtype(code) for code in ALLOWED_DTYPES}  # little-endian dtypes
+_DTYPE_CODES = {dtype: code for code, dtype in _DTYPES.items()}
+_DTYPES_BY_BYTES = {code.encode(): dtype for code, dtype in _DTYPES.items()}
 _SHAPES: dict[tuple[int, ...], bytes] = {}  # shape -> its msgpack bytes, for common shapes
 
 
@@ -107,8 +109,6 @@ def pack(message: Any) -> bytes:
     return payload
 
 
-_DTYPES = {code: np.dtype(code) for code in ALLOWED_DTYPES}
-_DTYPES_BY_BYTES = {code.encode(): dtype for code, dtype in _DTYPES.items()}
 _SHAPE_UINTS = {0xCC: 1, 0xCD: 2, 0xCE: 4}  # msgpack uint8/16/32 tag: width (all < 2**40)
 _BIN_TAGS = {0xC4: 1, 0xC5: 2, 0xC6: 4}  # msgpack bin8/16/32 tag: width of the length
 
