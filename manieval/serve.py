@@ -48,8 +48,12 @@ def serve(
 
     engines = embedded_engines(s, host=host, port=port)
     service = Service(s, host=host, port=port, sessions=sessions, engines=engines)
-    for problem in service.start_engines():
-        console.print(f"[yellow]{problem}[/]")
+    try:
+        for problem in service.start_engines():
+            console.print(f"[yellow]{problem}[/]")
+    except KeyboardInterrupt:  # those started so far stop now, not with the process
+        engines.stop()
+        raise
     console.print(f"ManiEval on http://{host}:{port}  (data: {s.data_dir}, docs: /docs)")
     if engines.registry_domain is not None:
         console.print(f"registry: {engines.registry_domain}  (manieval push IMAGE --challenge ...)")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -30,6 +31,25 @@ from tests.factories import RecordingQueue, fake_resolve_for
 PG_ADMIN_URL = os.environ.get(
     "MANIEVAL_TEST_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    foreground_signals()
+
+
+def foreground_signals() -> None:
+    """SIGINT and SIGTERM as a terminal's foreground process has them, whatever started pytest.
+
+    A background job of a non-interactive shell (`nohup make test &`, some CI runners) starts
+    with SIGINT ignored, and an ignored signal stays ignored across `exec`: every process a test
+    starts would inherit it. A handled signal is reset to its default in the child, so with these
+    set here each child starts as from a terminal, and a test that signals one tests the code,
+    not how pytest was launched. (tests/test_signals.py checks both sides.)
+    """
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 @pytest.fixture(autouse=True)

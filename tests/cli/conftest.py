@@ -55,6 +55,11 @@ class LiveServer:
     log: Path
 
 
+def ignore_sigint() -> None:
+    """In a child before `exec`: SIGINT ignored, as `cmd &` in a non-interactive shell has it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def clean_environment() -> dict[str, str]:
     """This process's environment without any MANIEVAL_* setting of the developer's."""
     return {k: v for k, v in os.environ.items() if not k.startswith("MANIEVAL_")}
@@ -189,8 +194,9 @@ class Participant:
         """`manieval ARGS` in this process, as CliRunner runs it."""
         return CliRunner().invoke(app, list(args), input=input, env=self.env | dict(env or {}))
 
-    def spawn(self, *args: str) -> subprocess.Popen[str]:
-        """`manieval ARGS` as a real process (stdout and stderr piped, text)."""
+    def spawn(self, *args: str, sigint_ignored: bool = False) -> subprocess.Popen[str]:
+        """`manieval ARGS` as a real process (stdout and stderr piped, text); with
+        `sigint_ignored`, started as a shell starts a background job."""
         env = clean_environment() | {k: v for k, v in self.env.items() if v is not None}
         return subprocess.Popen(
             [sys.executable, "-m", "manieval", *args],
@@ -199,6 +205,7 @@ class Participant:
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            preexec_fn=ignore_sigint if sigint_ignored else None,
         )
 
     def register(self, username: str) -> None:

@@ -164,11 +164,19 @@ def test_wait_on_a_terminal_draws_a_live_progress_display(live: LiveServer, tmp_
     assert "PickCube-v1" in r.stdout
 
 
+@pytest.mark.parametrize("started", ["from a terminal", "in the background"])
 def test_ctrl_c_stops_waiting_without_cancelling_and_says_how_to_resume(
-    live: LiveServer, tmp_path: Path
+    live: LiveServer, tmp_path: Path, started: str
 ) -> None:
-    carol = participant(live, tmp_path, "carol")
-    waiting = carol.spawn("submit", "local:random", "-c", "server-long", "--wait")
+    carol = participant(live, tmp_path, "carol" if started == "from a terminal" else "carl")
+    waiting = carol.spawn(
+        "submit",
+        "local:random",
+        "-c",
+        "server-long",
+        "--wait",
+        sigint_ignored=started == "in the background",  # SIGINT still stops it (docs/cli.md)
+    )
     sid = accepted_id("".join(read_until(waiting, "accepted")))
     read_until(waiting, rf"submission {sid}: ")  # the wait loop is showing the state
     waiting.send_signal(signal.SIGINT)
