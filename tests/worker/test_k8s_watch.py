@@ -193,7 +193,8 @@ def test_a_410_mid_stream_lists_again_and_the_job_is_still_followed_to_its_end(
 ):
     name = start_job(apiserver)
     apiserver.run(NAMESPACE, name)
-    until(lambda: len(cluster.pods_of(name)) == 1, "its pod")
+    # Jobs and pods come on two watches: each must have seen the Job's start.
+    until(lambda: cluster.job(name) is not None and len(cluster.pods_of(name)) == 1, "its pod")
     with apiserver.together():  # compacted, and the Job ended, before the watch resumed
         apiserver.expire_watches()
         apiserver.succeed(NAMESPACE, name, ["done"])

@@ -619,10 +619,14 @@ def test_an_eviction_that_makes_the_job_run_out_of_time_is_not_the_policys_fault
     name = job_name(queued.id, 1)
     run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     apiserver.run(NAMESPACE, name)
-    with apiserver.together():  # seen at once: a disruption seen alone ends the attempt
+    with apiserver.together():
         apiserver.disrupt(NAMESPACE, name)  # the replacement pod starts late...
         apiserver.exceed_deadline(NAMESPACE, name)  # ...and the Job's clock ran on
-    assert "evicted" in assert_cluster_error(committed_sessions, queued.id, run.wait())
+    # Pods and Jobs come on two watches: which the watcher sees first is the cluster's timing
+    # (the deadline, then the disruption read fresh; or the disruption alone). Either way the
+    # cluster is charged and says it evicted the evaluation.
+    reason = assert_cluster_error(committed_sessions, queued.id, run.wait())
+    assert "evict" in reason.lower(), reason
 
 
 def looked_twice(
