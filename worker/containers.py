@@ -38,6 +38,10 @@ LABEL_SUBMISSION = "manieval.submission"
 LABEL_ATTEMPT = "manieval.attempt"
 LABEL_ROLE = "manieval.role"
 LABEL_CREATED = "manieval.created"
+LABEL_SERVICE = "manieval.service"
+"""The service a container evaluates for (`WorkerSettings.service_id`): the reconciler of one
+service never removes another's containers from an engine they share (two services, or two
+test sessions, on one machine share rootful Podman's store)."""
 ROLE_POLICY = "policy"
 LOG_SIZE_MAX = "1m"  # what the engine keeps of the policy's output on its disk
 ENGINE_TIMEOUT_S = 60
@@ -93,9 +97,10 @@ def attempt_key(submission: int | str, attempt: int | str) -> str:
     return f"{submission}/{attempt}"
 
 
-def policy_labels(*, submission: int, attempt: int, created: float) -> dict[str, str]:
-    """Labels that tie a container to its attempt, for the reconciler."""
+def policy_labels(*, service: str, submission: int, attempt: int, created: float) -> dict[str, str]:
+    """Labels that tie a container to its service and attempt, for the reconciler."""
     return {
+        LABEL_SERVICE: service,
         LABEL_SUBMISSION: str(submission),
         LABEL_ATTEMPT: str(attempt),
         LABEL_ROLE: ROLE_POLICY,
@@ -219,6 +224,8 @@ class ContainerImage:
     attempt: int
     engine_url: str = DEFAULT_ENGINE_URL
     limits: ContainerLimits = field(default_factory=ContainerLimits)
+    service: str = ""
+    """The service it evaluates for (`WorkerSettings.service_id`; "": a local `evaluate`)."""
 
     def __post_init__(self) -> None:
         pinned_reference(self.image)
@@ -247,7 +254,10 @@ class ContainerImage:
                 submission=self.submission, attempt=self.attempt, token=secrets.token_hex(4)
             ),
             labels=policy_labels(
-                submission=self.submission, attempt=self.attempt, created=time.time()
+                service=self.service,
+                submission=self.submission,
+                attempt=self.attempt,
+                created=time.time(),
             ),
             limits=self.limits,
             socket_dir=socket_dir,
@@ -364,17 +374,19 @@ def _remove(container: Container) -> None:
         log.exception("could not remove policy container %s", container.name)
 
 
-def remove_leftovers(client: DockerClient, *, keep: set[str], grace_s: float = 60.0) -> list[str]:
-    """Remove policy containers of attempts not in `keep` (see `attempt_key`); their names.
+def remove_leftovers(
+    client: DockerClient, *, service: str, keep: set[str], grace_s: float = 60.0
+) -> list[str]:
+    """Remove the policy containers of `service`'s attempts not in `keep` (see `attempt_key`);
+    their names.
 
     Containers younger than `grace_s` are spared: their attempt may have started after the
     caller read which attempts are live.
     """
     removed = []
     now = time.time()
-    for container in client.containers.list(
-        all=True, filters={"label": f"{LABEL_ROLE}={ROLE_POLICY}"}
-    ):
+    ours = [f"{LABEL_ROLE}={ROLE_POLICY}", f"{LABEL_SERVICE}={service}"]
+    for container in client.containers.list(all=True, filters={"label": ours}):
         labels = container.labels
         key = attempt_key(labels.get(LABEL_SUBMISSION, "?"), labels.get(LABEL_ATTEMPT, "?"))
         if key in keep or now - _created(labels) < grace_s:

@@ -74,7 +74,7 @@ def runtime_cleaners(settings: WorkerSettings) -> list[Cleaner]:
             from worker.containers import attempt_key, engine, remove_leftovers
 
             keep = {attempt_key(sid, attempt) for sid, attempt in active}
-            return remove_leftovers(engine(url), keep=keep)
+            return remove_leftovers(engine(url), service=settings.service_id, keep=keep)
 
         cleaners.append(clean_containers)
     if settings.executor == "kubernetes":

@@ -62,6 +62,7 @@ def policy_source(
         attempt=attempt,
         engine_url=settings.docker_engine_url,
         limits=limits,
+        service=settings.service_id,
     )
 
 

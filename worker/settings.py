@@ -7,6 +7,7 @@ in ``docs/server.md`` (Workers).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import socket
@@ -138,6 +139,12 @@ class WorkerSettings(BaseSettings):
         if len(value.get_secret_value()) < 32:
             raise ValueError("MANIEVAL_WORKER_TOKEN must be at least 32 characters")
         return value
+
+    @property
+    def service_id(self) -> str:
+        """Which service this worker evaluates for, stable across its restarts and ports and
+        shared by all its workers: a fingerprint of the worker token (which it does not reveal)."""
+        return hashlib.sha256(self.worker_token.get_secret_value().encode()).hexdigest()[:16]
 
     @property
     def resolved_spool_dir(self) -> Path:

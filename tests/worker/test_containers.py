@@ -9,6 +9,7 @@ import socket
 import stat
 import textwrap
 import time
+import uuid
 from collections.abc import Iterator
 from contextlib import closing
 from pathlib import Path
@@ -59,6 +60,10 @@ from manieval_sdk import Policy, serve
 SLEEPER = HEADER + 'print("sleeping", flush=True)\ntime.sleep(3600)\n'
 
 
+# This session's service, as the reconciler knows it: others on the machine have their own.
+SERVICE = f"test-session-{uuid.uuid4().hex[:8]}"
+
+
 @pytest.fixture(scope="module")
 def attempts() -> Iterator[tuple[int, int]]:
     """(submission, attempt) pairs no other test or session on this machine uses."""
@@ -79,6 +84,7 @@ def container_source(
         attempt=attempt,
         engine_url=container_engine.url,
         limits=limits,
+        service=SERVICE,
     )
 
 
@@ -399,13 +405,11 @@ def test_reconciler_removes_containers_a_crashed_worker_left(
     ]
     try:
         with closing(container_engine.client()) as client:
-            # Every other attempt on this machine counts as live: this test removes only its own.
-            keep = {
-                attempt_key(c.labels["manieval.submission"], c.labels["manieval.attempt"])
-                for c in client.containers.list(all=True, filters={"label": "manieval.role"})
-            } - {attempt_key(*crashed)}
-            assert remove_leftovers(client, keep=keep) == []  # too young to judge
-            removed = remove_leftovers(client, keep=keep, grace_s=0)
+            keep = {attempt_key(*live)}
+            assert remove_leftovers(client, service=SERVICE, keep=keep) == []  # too young to judge
+            # Another service's containers on the same engine are never this reconciler's.
+            assert remove_leftovers(client, service=f"{SERVICE}-other", keep=set(), grace_s=0) == []
+            removed = remove_leftovers(client, service=SERVICE, keep=keep, grace_s=0)
             assert removed == [processes[0].name]
             assert (
                 policy_containers(container_engine, submission=crashed[0], attempt=crashed[1]) == []

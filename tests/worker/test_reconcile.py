@@ -162,3 +162,12 @@ def test_a_resumer_that_cannot_tell_leaves_the_attempt_for_the_next_pass(
     report = reconcile_pass(api, resume=gone)
     assert asked == [sid, sid]
     assert report.server.lost == [sid]
+
+
+def test_a_services_workers_share_one_id_that_does_not_reveal_their_token() -> None:
+    token = "t" * 40
+    one, other = (WorkerSettings(worker_token=token, worker_name=n) for n in ("a", "b"))
+    moved = WorkerSettings(worker_token=token, server_url="http://10.0.0.5:9000")
+    assert one.service_id == other.service_id == moved.service_id
+    assert WorkerSettings(worker_token="u" * 40).service_id != one.service_id
+    assert token not in one.service_id
