@@ -23,6 +23,7 @@ from typing import Any
 from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session as DB
 
+from evaluator.results import condition_means
 from evaluator.stats import wilson_interval
 from server.models import (
     Challenge,
@@ -216,13 +217,11 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
         )
         .order_by(TaskResultRow.id)
     ).all()
-    conditions: dict[str, list[float]] = {}
     tasks: dict[str, dict[str, float]] = {}
     first: str | None = None
     successes = episodes = 0
     for row in rows:
         first = first or row.condition
-        conditions.setdefault(row.condition, []).append(row.success_rate)
         if row.condition == first:
             tasks[row.env_id] = {
                 "success_rate": row.success_rate,
@@ -232,7 +231,7 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
             successes += row.successes
             episodes += row.episodes
     return {
-        "conditions": {name: sum(v) / len(v) for name, v in conditions.items()},
+        "conditions": condition_means((row.condition, row.success_rate) for row in rows),
         "tasks": tasks,
         # The score's 95% interval: Wilson over the first condition's episodes pooled.
         "score_interval": list(wilson_interval(successes, episodes)) if rows else None,
