@@ -38,7 +38,8 @@ from server.models import (
 )
 
 
-def _eligible(phase_id: int) -> tuple[Any, ...]:
+def eligible_for(phase_id: int) -> tuple[Any, ...]:
+    """Conditions on a submission that may stand on the phase's board (as a row or a record)."""
     return (
         Submission.phase_id == phase_id,
         Submission.state == State.SUCCEEDED,
@@ -102,7 +103,7 @@ def _clear_user(db: DB, *, phase_id: int, user_id: int) -> None:
 def _fill_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mode: bool) -> None:
     eligible = db.scalars(
         select(Submission)
-        .where(*_eligible(phase_id), Submission.user_id == user_id)
+        .where(*eligible_for(phase_id), Submission.user_id == user_id)
         .order_by(*_BEST)
     ).all()
     chosen = [s for s in eligible if s.baseline]
@@ -138,7 +139,9 @@ def _refresh_team(db: DB, *, phase_id: int, team_id: int) -> None:
     best = db.execute(
         select(Submission, User.username)
         .join(User, User.id == Submission.user_id)
-        .where(*_eligible(phase_id), Submission.team_id == team_id, Submission.baseline.is_(False))
+        .where(
+            *eligible_for(phase_id), Submission.team_id == team_id, Submission.baseline.is_(False)
+        )
         .order_by(*_BEST)
         .limit(1)
     ).first()
