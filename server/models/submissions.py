@@ -42,9 +42,6 @@ class Cause(enum.StrEnum):
     """The service was stopped (Ctrl-C, SIGTERM) while it ran: queued again, every time."""
 
 
-# What counts against a quota: work the participant caused. Our errors and cancels do not.
-QUOTA_STATES = frozenset({State.RUNNING, State.SUCCEEDED, State.FAILED, State.TIMED_OUT})
-
 _state_enum = Enum(
     State, name="submission_state", values_callable=lambda e: [m.value for m in e], length=16
 )
