@@ -25,10 +25,10 @@ from manieval_sdk.wire import (
     DEFAULT_MAX_FRAME_BYTES,
     HEADER,
     PROTOCOL_VERSION,
-    FrameTooLarge,
     PeerClosed,
     ProtocolError,
     encode_frame,
+    frame_length,
     send_message,
     unpack_message,
 )
@@ -218,11 +218,9 @@ class PolicyEndpoint:
                 self._wait_until_ready(conn, select.POLLOUT, deadline)
 
     def _receive(self, conn: socket.socket, deadline: float) -> dict[str, Any]:
-        (length,) = HEADER.unpack(self._read(conn, HEADER.size, deadline))
-        if length > self.max_frame_bytes:  # refused before more of it than one read is taken
-            raise FrameTooLarge(f"frame of {length} bytes exceeds the {self.max_frame_bytes} limit")
-        if length == 0:
-            raise ProtocolError("empty frame")
+        header = self._read(conn, HEADER.size, deadline)
+        # A frame too large is refused before more of it than one read is taken.
+        length = frame_length(header, max_frame_bytes=self.max_frame_bytes)
         payload = self._read(conn, length, deadline)
         try:
             return unpack_message(payload)

@@ -249,12 +249,6 @@ def can_start_processes() -> bool:
     return not multiprocessing.current_process().daemon
 
 
-def idle_pools() -> int:
-    """How many warm pools wait for an evaluation."""
-    with _idle_lock:
-        return sum(len(pools) for pools in _idle.values())
-
-
 @atexit.register
 def close_idle() -> None:
     """Close every idle pool (registered to run at exit)."""

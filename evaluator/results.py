@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from datetime import datetime
 from typing import Literal
 
@@ -162,4 +163,17 @@ def aggregate_task(env_id: str, planned: int, episodes: list[EpisodeResult]) -> 
 
 def condition_score(tasks: list[TaskResult]) -> float:
     """Mean of task success rates (the suite score)."""
-    return sum(t.success_rate for t in tasks) / len(tasks) if tasks else 0.0
+    return mean_success_rate([t.success_rate for t in tasks])
+
+
+def mean_success_rate(rates: Sequence[float]) -> float:
+    """A condition's score: the mean of its tasks' success rates (0 without tasks)."""
+    return sum(rates) / len(rates) if rates else 0.0
+
+
+def condition_means(rates: Iterable[tuple[str, float]]) -> dict[str, float]:
+    """Each condition's score, from its tasks' (condition, success rate) in document order."""
+    by_condition: dict[str, list[float]] = {}
+    for condition, rate in rates:
+        by_condition.setdefault(condition, []).append(rate)
+    return {name: mean_success_rate(found) for name, found in by_condition.items()}

@@ -9,6 +9,7 @@ overwrite a re-run.
 from __future__ import annotations
 
 import enum
+import re
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -18,6 +19,9 @@ from evaluator.results import EvaluationResult
 REASON_LIMIT = 2000
 LOG_TAIL_LIMIT = 64 * 1024
 Progress = dict[str, int | float | str]
+IMAGE_DIGEST = r"sha256:[0-9a-f]{64}"
+PINNED_IMAGE = re.compile(rf"[A-Za-z0-9][A-Za-z0-9._:/-]*@{IMAGE_DIGEST}")
+"""An image reference pinned to exactly one manifest, ``repo@sha256:<hex>`` (match it whole)."""
 
 
 class State(enum.StrEnum):

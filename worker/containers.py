@@ -28,6 +28,7 @@ from docker.models.containers import Container
 from docker.types import LogConfig, Mount, Ulimit
 
 from evaluator.sources import LOG_TAIL_BYTES
+from internal_api.schemas import IMAGE_DIGEST, PINNED_IMAGE
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +52,7 @@ SIGKILL_EXIT = 137
 MIB = 1 << 20
 # repo@sha256:<digest> (what the server pins), or a bare image ID (what `manieval evaluate
 # --image` pins a local image to): both name immutable content.
-_PINNED = re.compile(r"^(?:[A-Za-z0-9][A-Za-z0-9._:/-]*@)?sha256:[0-9a-f]{64}$")
+_IMAGE_ID = re.compile(IMAGE_DIGEST)
 
 
 class ExecutorError(RuntimeError):
@@ -72,9 +73,13 @@ class ContainerLimits:
     user_processes: int = 8192
 
 
+def _pinned(image: str) -> bool:
+    return PINNED_IMAGE.fullmatch(image) is not None or _IMAGE_ID.fullmatch(image) is not None
+
+
 def pinned_reference(image: str) -> str:
     """`image` if it names exactly one manifest (`repo@sha256:<hex>`); ValueError otherwise."""
-    if not _PINNED.fullmatch(image):
+    if not _pinned(image):
         raise ValueError(f"the docker executor runs images pinned by digest only, not {image!r}")
     return image
 
@@ -82,13 +87,13 @@ def pinned_reference(image: str) -> str:
 def pin_local(client: DockerClient, image: str) -> str:
     """Pin a reference the engine knows (a local tag, say) to what it names right now: its
     registry digest when it has one, else its image ID."""
-    if _PINNED.fullmatch(image):
+    if _pinned(image):
         return image
     try:
         found = client.images.get(image)
     except ImageNotFound:
         raise ExecutorError(f"the engine has no image {image!r}; build or pull it first") from None
-    digests = [d for d in found.attrs.get("RepoDigests") or [] if _PINNED.fullmatch(d)]
+    digests = [d for d in found.attrs.get("RepoDigests") or [] if _pinned(d)]
     return str(digests[0] if digests else found.id)
 
 

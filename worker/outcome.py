@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from evaluator.results import EvaluationResult
-from internal_api.schemas import REASON_LIMIT, ErrorCause, FinalReport, State
+from internal_api.schemas import LOG_TAIL_LIMIT, REASON_LIMIT, ErrorCause, FinalReport, State
 
 
 def conclusion(
@@ -30,8 +30,6 @@ def ended(
     cause: ErrorCause | None = None,
 ) -> FinalReport:
     """A final report, with the reason and the log tail cut to what the server keeps."""
-    from internal_api.schemas import LOG_TAIL_LIMIT
-
     return FinalReport(
         state=state,
         reason=reason[:REASON_LIMIT],

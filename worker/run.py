@@ -29,7 +29,9 @@ log = logging.getLogger(__name__)
 
 PROGRESS_INTERVAL_S = 1.0
 HEARTBEAT_INTERVAL_S = 1.0  # also how soon a cancel is seen mid-episode
-DEADLINE_GRACE_S = 120.0  # beyond the suite's budget, before the reconciler times a run out
+RUN_ESTIMATE_GRACE_S = 120.0
+"""Beyond the run's estimated wall time (`wall_clock_limit_s`), before the reconciler times
+the attempt out. Not a Kubernetes Job's grace, which follows a deadline Kubernetes enforces."""
 SIM_STEPS_PER_S = 20.0  # a slow machine's pace, for the evaluator's own share of the time
 SCENE_BUILD_S = 2.0  # each episode rebuilds its scene (evaluator/sim.py)
 FRAME_RENDER_S = 0.25  # a slow machine's time to render a video frame (45-100 ms on lavapipe)
@@ -146,7 +148,7 @@ def wall_clock_limit_s(plan: EvaluationPlan) -> float:
         * FRAME_RENDER_S
         for run in plan.runs
     )
-    return plan.limits.budget_s * 1.1 + own + DEADLINE_GRACE_S
+    return plan.limits.budget_s * 1.1 + own + RUN_ESTIMATE_GRACE_S
 
 
 def _evaluate_recording(

@@ -23,6 +23,7 @@ from typing import Any
 from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session as DB
 
+from evaluator.results import condition_means
 from evaluator.stats import wilson_interval
 from server.models import (
     Challenge,
@@ -37,7 +38,8 @@ from server.models import (
 )
 
 
-def _eligible(phase_id: int) -> tuple[Any, ...]:
+def eligible_for(phase_id: int) -> tuple[Any, ...]:
+    """Conditions on a submission that may stand on the phase's board (as a row or a record)."""
     return (
         Submission.phase_id == phase_id,
         Submission.state == State.SUCCEEDED,
@@ -101,7 +103,7 @@ def _clear_user(db: DB, *, phase_id: int, user_id: int) -> None:
 def _fill_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mode: bool) -> None:
     eligible = db.scalars(
         select(Submission)
-        .where(*_eligible(phase_id), Submission.user_id == user_id)
+        .where(*eligible_for(phase_id), Submission.user_id == user_id)
         .order_by(*_BEST)
     ).all()
     chosen = [s for s in eligible if s.baseline]
@@ -137,7 +139,9 @@ def _refresh_team(db: DB, *, phase_id: int, team_id: int) -> None:
     best = db.execute(
         select(Submission, User.username)
         .join(User, User.id == Submission.user_id)
-        .where(*_eligible(phase_id), Submission.team_id == team_id, Submission.baseline.is_(False))
+        .where(
+            *eligible_for(phase_id), Submission.team_id == team_id, Submission.baseline.is_(False)
+        )
         .order_by(*_BEST)
         .limit(1)
     ).first()
@@ -216,13 +220,11 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
         )
         .order_by(TaskResultRow.id)
     ).all()
-    conditions: dict[str, list[float]] = {}
     tasks: dict[str, dict[str, float]] = {}
     first: str | None = None
     successes = episodes = 0
     for row in rows:
         first = first or row.condition
-        conditions.setdefault(row.condition, []).append(row.success_rate)
         if row.condition == first:
             tasks[row.env_id] = {
                 "success_rate": row.success_rate,
@@ -232,7 +234,7 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
             successes += row.successes
             episodes += row.episodes
     return {
-        "conditions": {name: sum(v) / len(v) for name, v in conditions.items()},
+        "conditions": condition_means((row.condition, row.success_rate) for row in rows),
         "tasks": tasks,
         # The score's 95% interval: Wilson over the first condition's episodes pooled.
         "score_interval": list(wilson_interval(successes, episodes)) if rows else None,

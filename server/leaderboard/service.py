@@ -22,13 +22,12 @@ from sqlalchemy.orm import Session as DB
 from server.challenges.charts import ScorePoint
 from server.challenges.service import get_challenge, get_phase, suite_of
 from server.kit.errors import NotFound
+from server.leaderboard.entries import eligible_for, summary
 from server.leaderboard.entries import refresh as refresh
-from server.leaderboard.entries import summary
 from server.models import (
     Challenge,
     LeaderboardEntry,
     Phase,
-    State,
     Submission,
     User,
 )
@@ -87,14 +86,7 @@ def baseline_points(db: DB, *, phase_id: int) -> list[tuple[str, float, datetime
 def record_points(db: DB, *, phase_id: int) -> list[ScorePoint]:
     """Public succeeded submissions that beat every earlier one: the database keeps the
     running best (a window function), so only the few records travel, however many ran."""
-    eligible = and_(
-        Submission.phase_id == phase_id,
-        Submission.state == State.SUCCEEDED,
-        Submission.public.is_(True),
-        Submission.hidden.is_(False),
-        Submission.baseline.is_(False),
-        Submission.score.is_not(None),
-    )
+    records = and_(*eligible_for(phase_id), Submission.baseline.is_(False))
     order = (Submission.created_at, Submission.id)
     ranked = (
         select(
@@ -105,7 +97,7 @@ def record_points(db: DB, *, phase_id: int) -> list[ScorePoint]:
             func.max(Submission.score).over(order_by=order, rows=(None, -1)).label("before"),
         )
         .join(User, User.id == Submission.user_id)
-        .where(eligible)
+        .where(records)
         .subquery()
     )
     rows = db.execute(

@@ -24,7 +24,7 @@ import gc
 import json
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -248,33 +248,17 @@ def read_whole(
     keep: dict[int, Stored] = {}
     if held is not None and (held.tasks, held.conditions) == (tasks, conditions):
         keep = held.by_id if db.get_bind().dialect.name in STABLE_IDS else {}
-    rows: list[Stored] = []
+    intervals = [_interval(db, entry) for entry in entries]
+    rows = [
+        keep.get(entry.id) or Stored(entry, entry.summary_text, interval)
+        for entry, interval in zip(entries, intervals, strict=True)
+    ]
     ranks: list[int | None] = []
     tied: list[bool] = []
-    for entry, rank, interval, tie in _ranked(entries, lambda e: _interval(db, e)):
-        rows.append(keep.get(entry.id) or Stored(entry, entry.summary_text, interval))
-        ranks.append(rank)
-        tied.append(tie)
+    _rank(zip([e.baseline for e in entries], intervals, strict=True), ranks, tied)
     return Snapshot(
         slug, phase, phase_id, version, rows, ranks, tied, tasks, conditions, challenge.suite_hash
     )
-
-
-def _ranked(
-    entries: Sequence[Any], interval_of: Callable[[Any], Interval]
-) -> Iterator[tuple[Any, int | None, Interval, bool]]:
-    """(entry, rank, score interval, tied) for a whole board's entries in rank order:
-    baselines are not ranked, and a row is tied when its interval overlaps the ranked row's
-    above it."""
-    rank, above = 0, None
-    for entry in entries:
-        interval = interval_of(entry)
-        if entry.baseline:
-            yield entry, None, interval, False
-            continue
-        rank += 1
-        yield entry, rank, interval, overlaps(interval, above)
-        above = interval
 
 
 def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
@@ -324,19 +308,32 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
 
 
 def _rank_from(rows: list[Stored], first: int, ranks: list[int | None], tied: list[bool]) -> None:
-    """Extend `ranks` and `tied`, right up to `first`, to every row: baselines are not ranked,
-    and a row is tied when its interval overlaps the one of the ranked row above it."""
+    """Extend `ranks` and `tied`, right up to `first`, to every row."""
     rank, above = 0, None
     for i in range(first - 1, -1, -1):
         if (found := ranks[i]) is not None:
             rank, above = found, rows[i].interval
             break
-    for stored in rows[first:]:
-        if stored.baseline:
+    _rank(((s.baseline, s.interval) for s in rows[first:]), ranks, tied, rank=rank, above=above)
+
+
+def _rank(
+    rows: Iterable[tuple[bool, Interval]],
+    ranks: list[int | None],
+    tied: list[bool],
+    *,
+    rank: int = 0,
+    above: Interval = None,
+) -> None:
+    """Append the rank and tie of each (baseline, score interval) in rank order, after a ranked
+    row of `rank` and interval `above`: baselines are not ranked, and a row is tied when its
+    interval overlaps the one of the ranked row above it."""
+    for baseline, interval in rows:
+        if baseline:
             ranks.append(None)
             tied.append(False)
             continue
         rank += 1
         ranks.append(rank)
-        tied.append(overlaps(stored.interval, above))
-        above = stored.interval
+        tied.append(overlaps(interval, above))
+        above = interval

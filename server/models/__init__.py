@@ -13,7 +13,6 @@ from server.models.base import NAMING, Base, UTCDateTime, utcnow
 from server.models.challenges import Challenge, Phase
 from server.models.leaderboard import LeaderboardEntry
 from server.models.submissions import (
-    QUOTA_STATES,
     Cause,
     EpisodeResultRow,
     Outbox,
@@ -27,7 +26,6 @@ __all__ = [
     "ACTIVE_STATES",
     "FINAL_STATES",
     "NAMING",
-    "QUOTA_STATES",
     "ApiToken",
     "Base",
     "Cause",

@@ -22,7 +22,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
-from internal_api.schemas import State
+from internal_api.schemas import ErrorCause, State
 from server.models.accounts import User
 from server.models.base import Base, utcnow
 from server.models.challenges import Challenge, Phase
@@ -31,18 +31,16 @@ from server.models.challenges import Challenge, Phase
 class Cause(enum.StrEnum):
     """Why an attempt ended `error` through no fault of the policy's, where the reconciler acts
     on it (a lost attempt runs again once, a stopped one always): a typed column, never text to
-    match."""
+    match. The causes a worker reports are the contract's `ErrorCause`, recorded as its value;
+    the server finds the others itself."""
 
     WORKER_LOST = "worker_lost"
     WORKER_RESTARTED = "worker_restarted"
-    CLUSTER = "cluster"
+    CLUSTER = ErrorCause.CLUSTER.value
     """The Kubernetes cluster stopped it (evicted, preempted, unschedulable, quota, node lost)."""
     STOPPED = "stopped"
     """The service was stopped (Ctrl-C, SIGTERM) while it ran: queued again, every time."""
 
-
-# What counts against a quota: work the participant caused. Our errors and cancels do not.
-QUOTA_STATES = frozenset({State.RUNNING, State.SUCCEEDED, State.FAILED, State.TIMED_OUT})
 
 _state_enum = Enum(
     State, name="submission_state", values_callable=lambda e: [m.value for m in e], length=16

@@ -23,7 +23,7 @@ from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Submission
 from server.submissions.method import Method
-from server.submissions.queue import queue_out
+from server.submissions.position import queue_out
 from server.submissions.schemas import (
     EpisodeOut,
     LogsOut,

@@ -75,7 +75,9 @@ class StreamSlots:
 
 
 @dataclass(frozen=True)
-class Snapshot:
+class PolledSubmission:
+    """What one poll of a watched submission found: where it stands, and its new transitions."""
+
     state: State
     reason: str
     score: float | None
@@ -94,13 +96,13 @@ def _viewer_user(sessions: sessionmaker[DB], cookie: str | None, submission_id: 
 
 def _poll(
     sessions: sessionmaker[DB], submission_id: int, after: int, user: User | None
-) -> Snapshot | None:
+) -> PolledSubmission | None:
     with sessions() as db:
         s = find_visible(db, submission_id=submission_id, user=user)
         if s is None:
             return None
         transitions = transitions_of(db, submission_id=submission_id, after=after)
-        return Snapshot(
+        return PolledSubmission(
             state=s.state,
             reason=s.reason,
             score=s.score,

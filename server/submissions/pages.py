@@ -20,7 +20,7 @@ from server.kit.deps import DBDep, Id, services
 from server.kit.errors import Forbidden
 from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
 from server.models import EpisodeResultRow, State, Submission, User
-from server.submissions.queue import queue_out
+from server.submissions.position import queue_out
 from server.submissions.service import (
     cancel,
     condition_means,

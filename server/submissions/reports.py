@@ -15,7 +15,7 @@ from sqlalchemy import delete, update
 from sqlalchemy.orm import Session as DB
 
 from evaluator.results import EvaluationResult
-from internal_api.schemas import ErrorCause
+from internal_api.schemas import LOG_TAIL_LIMIT, ErrorCause
 from server.kit.errors import Conflict, Invalid, NotFound
 from server.leaderboard.service import refresh
 from server.models import (
@@ -30,7 +30,6 @@ from server.submissions.changes import changed
 from server.submissions.reconcile import end_lost
 from server.submissions.states import transition
 
-LOG_TAIL_LIMIT = 64 * 1024
 _UNSTORABLE = re.compile("[\x00\ud800-\udfff]")
 T = TypeVar("T")
 

@@ -16,6 +16,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import joinedload
 
+from evaluator import results
 from evaluator.bundled import LOCAL_PREFIX
 from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, Unavailable
 from server.leaderboard.service import refresh
@@ -310,10 +311,7 @@ def task_rows(db: DB, *, submission: Submission) -> list[TaskResultRow]:
 
 def condition_means(rows: list[TaskResultRow]) -> dict[str, float]:
     """Each condition's mean success rate over its tasks."""
-    by_condition: dict[str, list[float]] = {}
-    for row in rows:
-        by_condition.setdefault(row.condition, []).append(row.success_rate)
-    return {name: sum(rates) / len(rates) for name, rates in by_condition.items()}
+    return results.condition_means((row.condition, row.success_rate) for row in rows)
 
 
 def episode_rows(

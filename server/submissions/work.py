@@ -1,5 +1,7 @@
 """Work for the workers: fair claims, the evaluation an attempt runs, a restarted or stopped
-worker's attempts. The internal API (`internal.py`) is its only caller.
+worker's attempts. Its callers: the internal API (`internal.py`: claims, assignments, a
+restarted worker), the embedded service when it stops (`manieval/service.py`: `end_stopped`),
+and the queue position (`position.py`), which reuses `fair_order`.
 
 A worker does not run "the message it was given": it claims the next submission by a fair
 order, with a conditional update that only one worker can win. So a message delivered twice,

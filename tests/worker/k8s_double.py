@@ -55,7 +55,7 @@ from kubernetes.client import ApiClient, Configuration
 
 from evaluator.job import EvaluationJob
 from worker.kubernetes.client import Backoff, KubernetesExecutor, no_client_retries
-from worker.kubernetes.manifest import INDEX_LABEL, JobSpec, Resources
+from worker.kubernetes.manifest import EVALUATOR, INDEX_LABEL, JobSpec, Resources, job_name
 
 NAMESPACE = "manieval-eval"
 SCHEMA_VERSION = "1.30"
@@ -1141,3 +1141,21 @@ def executor_for(
         sleep=recorded.append,
         jitter=lambda: 0.5,
     )
+
+
+def collect_logs(
+    executor: KubernetesExecutor,
+    submission_id: int,
+    attempt: int,
+    *,
+    container: str = EVALUATOR,
+    tail_lines: int = 0,
+) -> list[str]:
+    """One container's log per shard index of the attempt's Job, its shards read from the Job
+    ("" where no pod is left); the evaluator's by default."""
+    job = executor.batch.read_namespaced_job(job_name(submission_id, attempt), executor.namespace)
+    spec = job.spec
+    indexed = spec is not None and spec.completion_mode == "Indexed"
+    shards = (spec.completions or 1) if spec is not None and indexed else 1
+    pods = executor.job_pods(submission_id, attempt)
+    return executor.logs(pods, shards, container=container, tail_lines=tail_lines)

@@ -19,6 +19,7 @@ from server.kit.settings import Settings
 from tests.worker.k8s_double import (
     NAMESPACE,
     ApiServerDouble,
+    collect_logs,
     executor_for,
     make_spec,
     running_apiserver,
@@ -98,7 +99,7 @@ def test_a_job_is_created_from_the_manifest_and_runs_to_success(apiserver: ApiSe
     result, log = result_log(plan_of())
     apiserver.succeed(NAMESPACE, "eval-7-1", [log])
     assert executor.status(7, 1) == JobStatus("succeeded")
-    logs = executor.collect(7, 1)
+    logs = collect_logs(executor, 7, 1)
     assert logs == [log]
     assert result_from_logs(plan_of(), logs) == result
 
@@ -108,7 +109,7 @@ def test_a_started_but_unscheduled_pod_keeps_the_job_pending(apiserver: ApiServe
     executor.start(make_spec())
     apiserver.run(NAMESPACE, "eval-7-1", ready=False)
     assert executor.status(7, 1) == JobStatus("pending")
-    assert executor.collect(7, 1) == [""]  # the evaluator has not started: no log yet
+    assert collect_logs(executor, 7, 1) == [""]  # the evaluator has not started: no log yet
 
 
 def test_an_indexed_job_gives_one_log_per_shard_and_they_merge(apiserver: ApiServerDouble):
@@ -119,7 +120,7 @@ def test_an_indexed_job_gives_one_log_per_shard_and_they_merge(apiserver: ApiSer
     plan = spec.evaluation.plan()
     logs = [shard_log(plan, 0, 2), shard_log(plan, 1, 2)]
     apiserver.succeed(NAMESPACE, "eval-7-1", logs)
-    collected = executor.collect(7, 1)
+    collected = collect_logs(executor, 7, 1)
     assert collected == logs
     merged = result_from_logs(plan, collected)
     assert [e.seed for e in merged.conditions[0].tasks[0].episodes] == [100, 101]
@@ -131,7 +132,7 @@ def test_the_policy_log_tail_can_be_collected_too(apiserver: ApiServerDouble):
     executor.start(make_spec())
     policy_log = "".join(f"line {i}\n" for i in range(10))
     apiserver.succeed(NAMESPACE, "eval-7-1", ["x"], policy_logs=[policy_log])
-    assert executor.collect(7, 1, container="policy", tail_lines=2) == ["line 8\nline 9\n"]
+    assert collect_logs(executor, 7, 1, container="policy", tail_lines=2) == ["line 8\nline 9\n"]
 
 
 def test_after_a_disruption_the_replacement_pods_log_is_collected(apiserver: ApiServerDouble):
@@ -141,7 +142,7 @@ def test_after_a_disruption_the_replacement_pods_log_is_collected(apiserver: Api
     apiserver.logs[(NAMESPACE, first, "evaluator")] = "evicted half way"
     apiserver.disrupt(NAMESPACE, "eval-7-1")
     apiserver.succeed(NAMESPACE, "eval-7-1", ["the rerun's log"])
-    assert executor.collect(7, 1) == ["the rerun's log"]
+    assert collect_logs(executor, 7, 1) == ["the rerun's log"]
 
 
 @pytest.mark.parametrize("reason", ["PodFailurePolicy", "BackoffLimitExceeded"])
@@ -160,7 +161,7 @@ def test_a_failed_jobs_evaluator_log_is_still_readable(apiserver: ApiServerDoubl
     executor.start(make_spec())
     apiserver.run(NAMESPACE, "eval-7-1")
     apiserver.fail(NAMESPACE, "eval-7-1", logs=["Traceback (most recent call last): ..."])
-    assert executor.collect(7, 1) == ["Traceback (most recent call last): ..."]
+    assert collect_logs(executor, 7, 1) == ["Traceback (most recent call last): ..."]
 
 
 def test_a_job_past_its_deadline_is_deadline_exceeded(apiserver: ApiServerDouble):
@@ -171,7 +172,7 @@ def test_a_job_past_its_deadline_is_deadline_exceeded(apiserver: ApiServerDouble
     status = executor.status(7, 1)
     assert status.phase == "deadline_exceeded"
     assert "DeadlineExceeded" in status.reason
-    assert executor.collect(7, 1) == [""]  # the controller deleted the running pod
+    assert collect_logs(executor, 7, 1) == [""]  # the controller deleted the running pod
 
 
 def test_a_job_that_does_not_exist_is_missing(apiserver: ApiServerDouble):

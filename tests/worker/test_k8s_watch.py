@@ -15,6 +15,7 @@ import pytest
 from tests.worker.k8s_double import (
     NAMESPACE,
     ApiServerDouble,
+    collect_logs,
     executor_for,
     make_spec,
     running_apiserver,
@@ -145,7 +146,7 @@ def test_requests_are_counted_by_verb_and_resource(apiserver: ApiServerDouble):
     apiserver.run(NAMESPACE, name)
     executor = executor_for(apiserver)
     executor.status(7, 1)
-    executor.collect(7, 1)
+    collect_logs(executor, 7, 1)
     watch_lines(apiserver, f"{PODS}?watch=true&timeoutSeconds=0")
     assert apiserver.counts() == {
         "get jobs": 2,

@@ -187,19 +187,6 @@ class KubernetesExecutor:
             raise
         return job_status(job)
 
-    def collect(
-        self, submission_id: int, attempt: int, *, container: str = EVALUATOR, tail_lines: int = 0
-    ) -> list[str]:
-        """One container's log per shard index ("" where no pod is left); the evaluator's by
-        default, whose last marked block is the result (see evaluator.job.result_from_logs)."""
-        name = job_name(submission_id, attempt)
-        job = self._call(self._batch.read_namespaced_job, name, self.namespace)
-        spec = job.spec
-        indexed = spec is not None and spec.completion_mode == "Indexed"
-        shards = (spec.completions or 1) if spec is not None and indexed else 1
-        pods = self.job_pods(submission_id, attempt)
-        return self.logs(pods, shards, container=container, tail_lines=tail_lines)
-
     def logs(
         self, pods: list[V1Pod], shards: int, *, container: str = EVALUATOR, tail_lines: int = 0
     ) -> list[str]:

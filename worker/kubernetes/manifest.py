@@ -36,6 +36,7 @@ from evaluator.job import (
 )
 from evaluator.plan import EvaluationPlan
 from evaluator.suite import Limits
+from internal_api.schemas import PINNED_IMAGE
 from manieval_sdk.serve import ENDPOINT_ENV
 
 APP_LABEL = "app.kubernetes.io/name"
@@ -69,7 +70,6 @@ _LABEL_KEY = re.compile(
     r"^([a-z0-9]([-a-z0-9.]{0,251}[a-z0-9])?/)?[A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?$"
 )
 _LABEL_VALUE = re.compile(r"^([A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?)?$")
-_PINNED = re.compile(r"^[a-z0-9][^\s@]*@sha256:[0-9a-f]{64}$")
 
 
 @dataclass(frozen=True)
@@ -128,7 +128,7 @@ class JobSpec:
             yield "submission_id and attempt must be at least 1"
         if not _DNS_LABEL.match(self.namespace):
             yield f"namespace {self.namespace!r} is not a DNS label"
-        if not _PINNED.match(self.policy_image):
+        if not PINNED_IMAGE.fullmatch(self.policy_image):
             yield f"policy image {self.policy_image!r} is not pinned by digest"
         if not self.evaluator_image or any(c.isspace() for c in self.evaluator_image):
             yield "the evaluator image is empty or has blanks"

@@ -56,7 +56,9 @@ from worker.settings import WorkerSettings
 
 log = logging.getLogger(__name__)
 
-DEADLINE_GRACE_S = 300.0  # beyond the Job's own deadline, before the reconciler times it out
+JOB_DEADLINE_GRACE_S = 300.0
+"""Beyond the Job's activeDeadlineSeconds (Kubernetes stops it there), before the reconciler
+times the attempt out: time to see the Job end and report it."""
 API_OUTAGE_S = 600.0  # the API server unreachable this long: the attempt ends `error`
 POLICY_LOG_LINES = 400
 CANCEL_CHECK_S = 1.0  # between looks, a heartbeat this often: a cancel stops the Job at once
@@ -157,7 +159,7 @@ class _Watch:
         room = self._until_room()
         if room not in (_ROOM, _UNKNOWN):
             return room  # type: ignore[return-value]
-        deadline_s = self.spec.active_deadline_seconds + DEADLINE_GRACE_S
+        deadline_s = self.spec.active_deadline_seconds + JOB_DEADLINE_GRACE_S
         reason = f"evaluating as Kubernetes Job {self.spec.name}"
         running = self.api.running(*self.ids, reason=reason, deadline_s=deadline_s)
         if running is None or not running.applied:

@@ -253,9 +253,17 @@ def recv_message(
     deadline: float | None = None,
 ) -> dict[str, Any]:
     """Receive one frame and decode it; `deadline` is a time.monotonic() value."""
-    (length,) = HEADER.unpack(_recv_exact(sock, HEADER.size, deadline))
+    header = _recv_exact(sock, HEADER.size, deadline)
+    length = frame_length(header, max_frame_bytes=max_frame_bytes)
+    return unpack_message(_recv_exact(sock, length, deadline))
+
+
+def frame_length(header: bytes, *, max_frame_bytes: int) -> int:
+    """The payload length a frame's header announces, refused before any of the payload is
+    read when it is over the limit or empty."""
+    (length,) = HEADER.unpack(header)
     if length > max_frame_bytes:
         raise FrameTooLarge(f"frame of {length} bytes exceeds the {max_frame_bytes} limit")
     if length == 0:
         raise ProtocolError("empty frame")
-    return unpack_message(_recv_exact(sock, length, deadline))
+    return int(length)
