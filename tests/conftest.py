@@ -16,6 +16,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+import hypothesis
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import Engine, create_engine, text
@@ -27,6 +28,12 @@ from server.kit.ratelimit import MemoryRateLimiter
 from server.kit.settings import Settings
 from server.models import Base
 from tests.factories import RecordingQueue, fake_resolve_for
+
+# Property tests (and schemathesis) try the same examples on every run: what they find is a
+# finding, never a coin toss in CI. `pytest --hypothesis-profile=explore` searches anew.
+hypothesis.settings.register_profile("suite", derandomize=True, database=None, deadline=None)
+hypothesis.settings.register_profile("explore", deadline=None)
+hypothesis.settings.load_profile("suite")
 
 PG_ADMIN_URL = os.environ.get(
     "MANIEVAL_TEST_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
