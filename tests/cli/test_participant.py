@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import secrets
 import signal
 import stat
 import subprocess
@@ -168,7 +169,7 @@ def test_wait_on_a_terminal_draws_a_live_progress_display(live: LiveServer, tmp_
 def test_ctrl_c_stops_waiting_without_cancelling_and_says_how_to_resume(
     live: LiveServer, tmp_path: Path, started: str
 ) -> None:
-    carol = participant(live, tmp_path, "carol" if started == "from a terminal" else "carl")
+    carol = participant(live, tmp_path, f"carol-{secrets.token_hex(4)}")  # one each, run again
     waiting = carol.spawn(
         "submit",
         "local:random",
