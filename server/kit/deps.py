@@ -62,10 +62,6 @@ class Caller:
     user: User | None
     session: Session | None  # set when authenticated by the session cookie
 
-    @property
-    def via_cookie(self) -> bool:
-        return self.session is not None
-
 
 def caller(request: Request, db: Annotated[DB, Depends(get_db)]) -> Caller:
     """Who is asking: an API token (Authorization: Bearer) or the session cookie.
