@@ -24,7 +24,6 @@ from server.kit.pages import (
     signed_in,
 )
 from server.models import User
-from server.teams.service import team_of
 
 router = APIRouter(include_in_schema=False)
 
@@ -188,7 +187,7 @@ def _account(
         status=status,
         user=user,
         tokens=accounts.list_tokens(db, user=user),
-        team=team_of(db, user=user),
+        team=accounts.team_of(db, user=user),
         **context,
     )
 

@@ -9,6 +9,7 @@ from fastapi import APIRouter, Form, Path, Query, Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
+from server.accounts import service as accounts
 from server.kit.deps import DBDep, Id
 from server.kit.errors import AppError
 from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
@@ -34,7 +35,7 @@ NOTICES = {
 
 def _mine(request: Request, who: Viewer, db: DB, **context: Any) -> Response:
     user = signed_in(request, who)
-    team = teams.team_of(db, user=user)
+    team = accounts.team_of(db, user=user)
     invitations = teams.invitations_for(db, user=user)
     context = {"errors": {}, "message": "", "notice": "", "form": {}, **context}
     return render(

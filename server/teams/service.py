@@ -87,15 +87,6 @@ def get_team(db: DB, *, name: str) -> Team:
     return team
 
 
-def team_of(db: DB, *, user: User) -> Team | None:
-    """The user's team, or None."""
-    return db.scalar(
-        select(Team)
-        .join(TeamMember, TeamMember.team_id == Team.id)
-        .where(TeamMember.user_id == user.id)
-    )
-
-
 def show_team(db: DB, *, team: Team, viewer: User | None) -> TeamView:
     """The team with its members; its pending invitations when `viewer` is its admin (or a
     site admin, who sees them but cannot act on them)."""
