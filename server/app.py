@@ -24,7 +24,6 @@ from server.challenges import pages as challenges_pages
 from server.kit import pages
 from server.kit.apidocs import mount_api_docs
 from server.kit.db import make_engine, session_factory
-from server.kit.deps import Services
 from server.kit.handlers import install_error_handlers
 from server.kit.observability import install_monitoring
 from server.kit.ratelimit import MemoryRateLimiter, RateLimiter
@@ -32,6 +31,7 @@ from server.kit.settings import Settings
 from server.leaderboard import api as leaderboard_api
 from server.leaderboard import pages as leaderboard_pages
 from server.registry import api as registry_api
+from server.services import Services
 from server.submissions import api as submissions_api
 from server.submissions import events, internal, submit_pages
 from server.submissions import pages as submissions_pages

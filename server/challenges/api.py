@@ -7,6 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter
 from fastapi import Path as FastAPIPath
 
+from server.accounts.deps import CallerDep
 from server.challenges import service
 from server.challenges.schemas import (
     ChallengeOut,
@@ -17,7 +18,7 @@ from server.challenges.schemas import (
     TaskOut,
 )
 from server.challenges.service import get_challenge, suite_of
-from server.kit.deps import CallerDep, DBDep, PageNo, PerPage
+from server.kit.deps import DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Challenge, utcnow

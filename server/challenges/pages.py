@@ -12,11 +12,12 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import RedirectResponse, Response
 from sqlalchemy.orm import Session as DB
 
+from server.accounts.deps import ViewerDep
 from server.challenges.charts import StepChart, best_over_time, step_chart
 from server.challenges.prose import markdown, markdown_inline, summary
 from server.challenges.service import all_challenges, get_challenge, shown_phase, suite_of
 from server.kit.deps import DBDep
-from server.kit.pages import ViewerDep, render
+from server.kit.pages import render
 from server.leaderboard.columns import board_columns
 from server.leaderboard.pages import top_rows
 from server.leaderboard.service import baseline_points, record_points

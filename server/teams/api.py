@@ -10,7 +10,8 @@ from fastapi import Path as FastAPIPath
 from sqlalchemy.orm import Session as DB
 
 from server.accounts import service as accounts
-from server.kit.deps import CallerDep, DBDep, Id, UserDep
+from server.accounts.deps import CallerDep, UserDep
+from server.kit.deps import DBDep, Id
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import Ok
 from server.models import Team, TeamInvitation, User

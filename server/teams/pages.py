@@ -10,9 +10,10 @@ from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
 from server.accounts import service as accounts
+from server.accounts.deps import PostedDep, ViewerDep
 from server.kit.deps import DBDep, Id
 from server.kit.errors import AppError
-from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
+from server.kit.pages import Viewer, redirect, render, signed_in
 from server.models import Team, User
 from server.teams import service as teams
 
