@@ -29,6 +29,7 @@ from server.kit.observability import install_monitoring
 from server.kit.ratelimit import MemoryRateLimiter, RateLimiter
 from server.kit.settings import Settings
 from server.leaderboard import api as leaderboard_api
+from server.leaderboard import challenge_page
 from server.leaderboard import pages as leaderboard_pages
 from server.registry import api as registry_api
 from server.services import Services
@@ -117,7 +118,7 @@ def create_app(
         redoc_url=None,
     )
     app.state.services = svc
-    app.state.score_history = challenges_pages.ScoreHistory()
+    app.state.score_history = challenge_page.ScoreHistory()
     app.state.event_timing = events.StreamTiming()
     app.state.event_slots = events.StreamSlots()
     app.state.change_feed = feed
@@ -137,6 +138,7 @@ def create_app(
         app,
         [
             challenges_pages.router,
+            challenge_page.router,
             accounts_pages.router,
             leaderboard_pages.router,
             submit_pages.router,

@@ -9,6 +9,7 @@ from fastapi import Path as FastAPIPath
 
 from server.accounts.deps import CallerDep
 from server.challenges import service
+from server.challenges.quota import quota_use
 from server.challenges.schemas import (
     ChallengeOut,
     ChallengeSummary,
@@ -22,7 +23,6 @@ from server.kit.deps import DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Challenge, utcnow
-from server.submissions.quota import quota_use
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES, tags=["challenges"])
 

@@ -26,8 +26,8 @@ from sqlalchemy.orm import joinedload
 from server.kit.errors import Conflict, Forbidden, Invalid, NotFound
 from server.kit.schemas import text_problem
 from server.kit.security import RESERVED_USERNAMES, USERNAME_GRAMMAR
-from server.leaderboard.entries import refresh_member, release_team
 from server.models import Team, TeamInvitation, TeamMember, User, utcnow
+from server.standings.entries import refresh_member, release_team
 from server.teams import locks
 
 TEAM_NAME_PATTERN = rf"^{USERNAME_GRAMMAR}$"

@@ -13,13 +13,13 @@ import pytest
 from sqlalchemy.orm import Session
 
 from server.accounts.service import team_of
-from server.leaderboard.entries import refresh
 from server.leaderboard.pages import sort_value
 from server.leaderboard.schemas import LeaderboardRowOut
 from server.leaderboard.service import board_version
 from server.leaderboard.snapshot import Snapshot, Snapshots, advance, read_whole
 from server.leaderboard.stored import csv_safe
 from server.models import Challenge, State, Submission, User
+from server.standings.entries import refresh
 from server.submissions.reports import report_final, report_state
 from server.teams import service as teams
 from tests.factories import make_challenge, make_user, queue_submission, result_doc
