@@ -20,8 +20,8 @@ from sqlalchemy.orm import Session
 
 from evaluator.stats import wilson_interval
 from server.kit.security import hash_password
-from server.leaderboard.service import refresh
 from server.models import LeaderboardEntry, State
+from server.standings.entries import refresh
 
 EPISODES = 50
 BASELINES_PER_PHASE = 3

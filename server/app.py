@@ -24,14 +24,15 @@ from server.challenges import pages as challenges_pages
 from server.kit import pages
 from server.kit.apidocs import mount_api_docs
 from server.kit.db import make_engine, session_factory
-from server.kit.deps import Services
 from server.kit.handlers import install_error_handlers
 from server.kit.observability import install_monitoring
 from server.kit.ratelimit import MemoryRateLimiter, RateLimiter
 from server.kit.settings import Settings
 from server.leaderboard import api as leaderboard_api
+from server.leaderboard import challenge_page
 from server.leaderboard import pages as leaderboard_pages
 from server.registry import api as registry_api
+from server.services import Services
 from server.submissions import api as submissions_api
 from server.submissions import events, internal, submit_pages
 from server.submissions import pages as submissions_pages
@@ -117,7 +118,7 @@ def create_app(
         redoc_url=None,
     )
     app.state.services = svc
-    app.state.score_history = challenges_pages.ScoreHistory()
+    app.state.score_history = challenge_page.ScoreHistory()
     app.state.event_timing = events.StreamTiming()
     app.state.event_slots = events.StreamSlots()
     app.state.change_feed = feed
@@ -137,6 +138,7 @@ def create_app(
         app,
         [
             challenges_pages.router,
+            challenge_page.router,
             accounts_pages.router,
             leaderboard_pages.router,
             submit_pages.router,

@@ -23,9 +23,9 @@ from evaluator.results import (
 from server.accounts import service as accounts
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
+from server.kit.image_refs import ImageReference, ResolvedImage
 from server.kit.settings import Settings
 from server.models import Challenge, Submission, User
-from server.submissions.image_refs import ImageReference, ResolvedImage
 from server.submissions.images import image_resolver
 from server.submissions.service import Resolved, Resolver, submit
 

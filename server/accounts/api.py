@@ -7,6 +7,7 @@ from fastapi import APIRouter, BackgroundTasks, Request, Response
 
 from server.accounts import service as accounts
 from server.accounts import verification
+from server.accounts.deps import CallerDep, UserDep, login_throttle
 from server.accounts.mail import announce_mail, duration, letters_for, send_after
 from server.accounts.schemas import (
     EmailChangeIn,
@@ -24,17 +25,7 @@ from server.accounts.schemas import (
     VerifyIn,
 )
 from server.kit import security
-from server.kit.deps import (
-    SESSION_COOKIE,
-    CallerDep,
-    DBDep,
-    Id,
-    UserDep,
-    client_ip,
-    limit,
-    login_throttle,
-    services,
-)
+from server.kit.deps import SESSION_COOKIE, DBDep, Id, client_ip, limit, services
 from server.kit.errors import ERROR_RESPONSES, Invalid, NotFound, Unauthorized
 from server.kit.schemas import Ok
 from server.models import ApiToken, User

@@ -11,20 +11,12 @@ from sqlalchemy.orm import Session as DB
 
 from server.accounts import service as accounts
 from server.accounts import verification
+from server.accounts.deps import PostedDep, ViewerDep, login_throttle
 from server.accounts.mail import duration, letters_for, send_after
-from server.kit.deps import SESSION_COOKIE, DBDep, Id, client_ip, limit, login_throttle, services
+from server.kit.deps import SESSION_COOKIE, DBDep, Id, client_ip, limit, services
 from server.kit.errors import AppError, Invalid, NotFound, Unauthorized
-from server.kit.pages import (
-    PostedDep,
-    Viewer,
-    ViewerDep,
-    redirect,
-    render,
-    safe_next,
-    signed_in,
-)
+from server.kit.pages import Viewer, redirect, render, safe_next, signed_in
 from server.models import User
-from server.teams.service import team_of
 
 router = APIRouter(include_in_schema=False)
 
@@ -188,7 +180,7 @@ def _account(
         status=status,
         user=user,
         tokens=accounts.list_tokens(db, user=user),
-        team=team_of(db, user=user),
+        team=accounts.team_of(db, user=user),
         **context,
     )
 

@@ -7,7 +7,9 @@ from typing import Annotated
 from fastapi import APIRouter
 from fastapi import Path as FastAPIPath
 
+from server.accounts.deps import CallerDep
 from server.challenges import service
+from server.challenges.quota import quota_use
 from server.challenges.schemas import (
     ChallengeOut,
     ChallengeSummary,
@@ -17,11 +19,10 @@ from server.challenges.schemas import (
     TaskOut,
 )
 from server.challenges.service import get_challenge, suite_of
-from server.kit.deps import CallerDep, DBDep, PageNo, PerPage
+from server.kit.deps import DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Challenge, utcnow
-from server.submissions.quota import quota_use
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES, tags=["challenges"])
 

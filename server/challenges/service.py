@@ -15,8 +15,8 @@ from sqlalchemy.orm import selectinload
 
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
 from server.kit.errors import Invalid, NotFound
-from server.leaderboard.entries import rebuild
 from server.models import Challenge, Phase, utcnow
+from server.standings.entries import rebuild
 
 
 @dataclass(frozen=True)

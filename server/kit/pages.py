@@ -1,5 +1,6 @@
-"""What every web page shares: templates, who is looking, form tokens, security headers, and
-`install(app, routers)`, which serves the pages of every domain and their static files.
+"""What every web page shares: templates, the viewer and their form tokens, security headers,
+and `install(app, routers)`, which serves the pages of every domain and their static files.
+Who is looking (the session cookie's account) is found by server/accounts/deps.py.
 
 The pages are server-rendered Jinja2 templates (`web/templates`) on the domain code: they call
 the same services as the API (no HTTP round trip) and are left out of the OpenAPI document,
@@ -18,18 +19,17 @@ import secrets
 from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Annotated, Any
+from typing import Any
 from urllib.parse import quote, urlencode, urlsplit
 
 import jinja2
-from fastapi import APIRouter, Depends, FastAPI, Form, Request
+from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 
-from server.accounts import service as accounts
 from server.kit import security
 from server.kit.db import ROOT
-from server.kit.deps import SESSION_COOKIE, DBDep, services
+from server.kit.deps import SESSION_COOKIE, services
 from server.kit.errors import ErrorDetail, Forbidden, Invalid
 from server.kit.schemas import text_problem
 from server.models import Session, User
@@ -133,10 +133,10 @@ def _form_digest(nonce: str) -> str:
     return "form:" + hashlib.sha256(nonce.encode("utf-8", "surrogatepass")).hexdigest()
 
 
-def viewer(request: Request, db: DBDep) -> Viewer:
-    """The viewer from the session cookie (API tokens are for programs, not pages)."""
+def viewer_for(request: Request, session: Session | None) -> Viewer:
+    """The viewer of a page, logged in by `session` (found by server/accounts/deps.py) or not:
+    then their forms carry a token bound to the form cookie, made here when missing."""
     key = services(request).csrf_key
-    session = accounts.session_for(db, cookie=request.cookies.get(SESSION_COOKIE))
     if session is not None:
         return Viewer(
             user=session.user, session=session, csrf=security.csrf_token(session.digest, key)
@@ -153,13 +153,8 @@ def viewer(request: Request, db: DBDep) -> Viewer:
     )
 
 
-ViewerDep = Annotated[Viewer, Depends(viewer)]
-
-
-async def posted(
-    request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] = ""
-) -> Viewer:
-    """The viewer of a form POST, whose CSRF token must match the session, or on the forms of
+async def check_posted(request: Request, who: Viewer, csrf_token: str) -> None:
+    """Pass a form POST whose CSRF token matches the session, or on the forms of
     `ANONYMOUS_FORMS` the form cookie (a form loaded before logging in elsewhere); otherwise 403
     and nothing is done. Every field must be text the server can store (else 422)."""
     key = services(request).csrf_key
@@ -169,14 +164,11 @@ async def posted(
         anonymous_form and nonce and security.csrf_valid(csrf_token, _form_digest(nonce), key)
     ):
         await _check_form_text(request)
-        return who
+        return
     raise Forbidden(
         "This form's security token is missing or out of date. "
         "Go back, reload the page and send the form again."
     )
-
-
-PostedDep = Annotated[Viewer, Depends(posted)]
 
 
 async def _check_form_text(request: Request) -> None:

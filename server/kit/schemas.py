@@ -66,8 +66,6 @@ Text = Annotated[str, AfterValidator(_text), Field(json_schema_extra={"pattern":
 """A multi-line text field (a description)."""
 SLUG_PATTERN = r"^[a-z0-9][a-z0-9_-]*$"
 """A challenge's slug: its suite's name (evaluator/suite.py)."""
-Slug = Annotated[str, Field(min_length=1, max_length=64, pattern=SLUG_PATTERN)]
-"""A challenge named in a body, a path or a query."""
 Flag = StrictBool
 """A boolean given as JSON `true`/`false` only: `0`, `"no"` or `"false"` are refused."""
 

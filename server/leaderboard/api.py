@@ -8,9 +8,10 @@ from fastapi import APIRouter, Query, Request, Response
 from fastapi import Path as FastAPIPath
 from starlette.concurrency import run_in_threadpool
 
-from server.kit.deps import PageNo, PerPage, services
+from server.kit.deps import PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN
+from server.leaderboard.deps import services
 from server.leaderboard.schemas import LeaderboardOut
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)

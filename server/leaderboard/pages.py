@@ -16,10 +16,12 @@ from fastapi.responses import Response
 from markupsafe import Markup
 from sqlalchemy.orm import Session as DB
 
+from server.accounts.deps import ViewerDep
 from server.challenges.service import get_challenge, shown_phase
-from server.kit.deps import DBDep, services
-from server.kit.pages import ViewerDep, render, templates
+from server.kit.deps import DBDep
+from server.kit.pages import render, templates
 from server.leaderboard.columns import board_columns
+from server.leaderboard.deps import services
 from server.leaderboard.service import Board, Row, suite_columns
 from server.leaderboard.snapshot import Snapshot
 

@@ -1,7 +1,7 @@
 """Leaderboards: one row per user (their best public succeeded submission), or per team in
 team mode, plus baselines.
 
-Rows live in ``leaderboard_entries``, recomputed by :mod:`server.leaderboard.entries` whenever
+Rows live in ``leaderboard_entries``, recomputed by :mod:`server.standings.entries` whenever
 something that decides them changes. Each change bumps the phase's ``leaderboard_version``;
 the API, the leaderboard pages and the challenge pages read whole boards kept per version
 (:mod:`server.leaderboard.snapshot`).
@@ -22,8 +22,6 @@ from sqlalchemy.orm import Session as DB
 from server.challenges.charts import ScorePoint
 from server.challenges.service import get_challenge, get_phase, suite_of
 from server.kit.errors import NotFound
-from server.leaderboard.entries import eligible_for, summary
-from server.leaderboard.entries import refresh as refresh
 from server.models import (
     Challenge,
     LeaderboardEntry,
@@ -31,6 +29,7 @@ from server.models import (
     Submission,
     User,
 )
+from server.standings.entries import eligible_for, summary
 
 V = TypeVar("V")
 

@@ -2,7 +2,7 @@
 phase's snapshots: its row as the pages show it, its JSON and its CSV line, less its rank and
 tie, which are the snapshot's.
 
-An entry's id always means the same content: `server.leaderboard.entries` never updates a row
+An entry's id always means the same content: `server.standings.entries` never updates a row
 in place (a refresh deletes the rows it recomputes and inserts new ones), so what is derived
 from an entry stays true for as long as the entry is on the board.
 """

@@ -7,9 +7,9 @@ import ipaddress
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from server.kit.image_refs import canonical_domain
 from server.kit.settings import Settings
 from server.registry import service
-from server.submissions.image_refs import canonical_domain
 
 
 @dataclass(frozen=True)

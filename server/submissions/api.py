@@ -7,21 +7,13 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 
+from server.accounts.deps import AdminDep, CallerDep, UserDep
 from server.challenges.service import get_challenge, get_phase
-from server.kit.deps import (
-    AdminDep,
-    CallerDep,
-    DBDep,
-    Id,
-    PageNo,
-    PerPage,
-    UserDep,
-    limit,
-    services,
-)
+from server.kit.deps import DBDep, Id, PageNo, PerPage, limit
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Submission
+from server.submissions.deps import services
 from server.submissions.method import Method
 from server.submissions.position import queue_out
 from server.submissions.schemas import (

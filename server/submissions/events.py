@@ -29,10 +29,11 @@ from sqlalchemy.orm import sessionmaker
 from starlette.concurrency import run_in_threadpool
 
 from server.accounts import service as accounts
-from server.kit.deps import SESSION_COOKIE, Id, services
+from server.kit.deps import SESSION_COOKIE, Id
 from server.kit.errors import Unavailable
 from server.models import State, User
 from server.submissions.changes import ChangeFeed
+from server.submissions.deps import services
 from server.submissions.service import find_visible, get_visible, transitions_of
 
 router = APIRouter(include_in_schema=False)

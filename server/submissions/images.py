@@ -1,4 +1,4 @@
-"""Policy images: pin a parsed reference (:mod:`server.submissions.image_refs`) to a digest on
+"""Policy images: pin a parsed reference (:mod:`server.kit.image_refs`) to a digest on
 an allowed registry. :class:`RegistryClient` asks a registry for the manifest over the OCI
 distribution API, checks the digest against the bytes it received and sums the sizes of the
 linux/amd64 image, so what is evaluated later is exactly what was checked now.
@@ -19,11 +19,7 @@ import httpx
 
 from evaluator.bundled import LOCAL_PREFIX, bundled_policies
 from server.kit.errors import Invalid, Unavailable
-from server.kit.settings import Settings
-from server.registry.deadline import Deadline, deadline_transport
-from server.registry.own import OwnRegistry, own_registry_of
-from server.registry.tokens import namespace_for
-from server.submissions.image_refs import (
+from server.kit.image_refs import (
     DEFAULT_DOMAIN,
     ImageError,
     ImageNotFound,
@@ -39,6 +35,10 @@ from server.submissions.image_refs import (
     parse_reference,
     verify_digest,
 )
+from server.kit.settings import Settings
+from server.registry.deadline import Deadline, deadline_transport
+from server.registry.own import OwnRegistry, own_registry_of
+from server.registry.tokens import namespace_for
 from server.submissions.service import Resolved
 
 OCI_INDEX = "application/vnd.oci.image.index.v1+json"

@@ -29,8 +29,9 @@ from internal_api.schemas import (
     Silent,
     State,
 )
-from server.kit.deps import DBDep, services
+from server.kit.deps import DBDep
 from server.kit.errors import Unauthorized
+from server.submissions.deps import services
 from server.submissions.reconcile import reconcile, silent
 from server.submissions.reports import (
     check_running,

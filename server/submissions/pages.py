@@ -15,11 +15,13 @@ from fastapi import APIRouter, Form, Query, Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
+from server.accounts.deps import PostedDep, ViewerDep
 from server.challenges.charts import TaskSuccess, success_bars
-from server.kit.deps import DBDep, Id, services
+from server.kit.deps import DBDep, Id
 from server.kit.errors import Forbidden
-from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
+from server.kit.pages import Viewer, redirect, render, signed_in
 from server.models import EpisodeResultRow, State, Submission, User
+from server.submissions.deps import services
 from server.submissions.position import queue_out
 from server.submissions.service import (
     cancel,

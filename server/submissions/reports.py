@@ -17,7 +17,6 @@ from sqlalchemy.orm import Session as DB
 from evaluator.results import EvaluationResult
 from internal_api.schemas import LOG_TAIL_LIMIT, ErrorCause
 from server.kit.errors import Conflict, Invalid, NotFound
-from server.leaderboard.service import refresh
 from server.models import (
     Cause,
     EpisodeResultRow,
@@ -26,6 +25,7 @@ from server.models import (
     TaskResultRow,
     utcnow,
 )
+from server.standings.entries import refresh
 from server.submissions.changes import changed
 from server.submissions.reconcile import end_lost
 from server.submissions.states import transition

@@ -18,8 +18,8 @@ from sqlalchemy.orm import joinedload
 
 from evaluator import results
 from evaluator.bundled import LOCAL_PREFIX
+from server.challenges.quota import check_quota
 from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, Unavailable
-from server.leaderboard.service import refresh
 from server.models import (
     FINAL_STATES,
     Challenge,
@@ -33,9 +33,9 @@ from server.models import (
     User,
     utcnow,
 )
+from server.standings.entries import refresh
 from server.submissions.changes import changed
 from server.submissions.method import Method
-from server.submissions.quota import check_quota
 from server.submissions.states import new_attempt, transition
 
 

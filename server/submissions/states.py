@@ -15,8 +15,8 @@ from typing import Any
 from sqlalchemy import update
 from sqlalchemy.orm import Session as DB
 
-from server.leaderboard.service import refresh
 from server.models import FINAL_STATES, Cause, Outbox, State, Submission, Transition, utcnow
+from server.standings.entries import refresh
 from server.submissions.changes import changed
 
 # Which states each state may move to (re-run, a new attempt, is separate: final -> queued).

@@ -10,14 +10,16 @@ from fastapi import APIRouter, Form, Query, Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
+from server.accounts.deps import PostedDep, ViewerDep
+from server.challenges.quota import quota_use
 from server.challenges.service import get_challenge, get_phase
-from server.kit.deps import DBDep, limit, services
+from server.kit.deps import DBDep, limit
 from server.kit.errors import AppError, Forbidden, Invalid
-from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
+from server.kit.pages import Viewer, redirect, render, signed_in
 from server.models import Challenge, State, User, utcnow
 from server.registry.tokens import namespace_for
+from server.submissions.deps import services
 from server.submissions.method import Method
-from server.submissions.quota import quota_use
 from server.submissions.service import images_refused, list_submissions, submit
 
 router = APIRouter(include_in_schema=False)

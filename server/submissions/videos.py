@@ -13,10 +13,12 @@ from pydantic import BaseModel, Field, ValidationError
 
 from evaluator.results import EpisodeResult, EvaluationResult
 from evaluator.video import video_name
-from server.kit.deps import CallerDep, DBDep, Id, services
+from server.accounts.deps import CallerDep
+from server.kit.deps import DBDep, Id
 from server.kit.errors import ERROR_RESPONSES, NotFound
 from server.kit.settings import Settings
 from server.models import Submission
+from server.submissions.deps import services
 from server.submissions.service import get_visible
 from server.submissions.video_store import MEDIA_TYPE, VideoStore
 

@@ -1,6 +1,6 @@
 """The row locks a membership change takes, in the one order every writer takes them: users
-(id order), then teams (id order), as the quota check (`server.submissions.quota`) and a
-leaderboard refresh (`server.leaderboard.entries`) do. A change locks up front every row the
+(id order), then teams (id order), as the quota check (`server.challenges.quota`) and a
+leaderboard refresh (`server.standings.entries`) do. A change locks up front every row the
 boards it recomputes will lock, so that no user row is locked after a team row.
 
 Every such lock is FOR NO KEY UPDATE (`key_share=True`): it serialises these writers but not

@@ -9,9 +9,11 @@ from fastapi import APIRouter, Form, Path, Query, Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
+from server.accounts import service as accounts
+from server.accounts.deps import PostedDep, ViewerDep
 from server.kit.deps import DBDep, Id
 from server.kit.errors import AppError
-from server.kit.pages import PostedDep, Viewer, ViewerDep, redirect, render, signed_in
+from server.kit.pages import Viewer, redirect, render, signed_in
 from server.models import Team, User
 from server.teams import service as teams
 
@@ -34,7 +36,7 @@ NOTICES = {
 
 def _mine(request: Request, who: Viewer, db: DB, **context: Any) -> Response:
     user = signed_in(request, who)
-    team = teams.team_of(db, user=user)
+    team = accounts.team_of(db, user=user)
     invitations = teams.invitations_for(db, user=user)
     context = {"errors": {}, "message": "", "notice": "", "form": {}, **context}
     return render(

@@ -26,8 +26,8 @@ from sqlalchemy.orm import joinedload
 from server.kit.errors import Conflict, Forbidden, Invalid, NotFound
 from server.kit.schemas import text_problem
 from server.kit.security import RESERVED_USERNAMES, USERNAME_GRAMMAR
-from server.leaderboard.entries import refresh_member, release_team
 from server.models import Team, TeamInvitation, TeamMember, User, utcnow
+from server.standings.entries import refresh_member, release_team
 from server.teams import locks
 
 TEAM_NAME_PATTERN = rf"^{USERNAME_GRAMMAR}$"
@@ -85,15 +85,6 @@ def get_team(db: DB, *, name: str) -> Team:
     if team is None:
         raise NotFound(f"no team {name!r}")
     return team
-
-
-def team_of(db: DB, *, user: User) -> Team | None:
-    """The user's team, or None."""
-    return db.scalar(
-        select(Team)
-        .join(TeamMember, TeamMember.team_id == Team.id)
-        .where(TeamMember.user_id == user.id)
-    )
 
 
 def show_team(db: DB, *, team: Team, viewer: User | None) -> TeamView:

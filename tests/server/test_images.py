@@ -1,4 +1,4 @@
-"""The reference grammar (server.submissions.image_refs) and resolving against a real registry
+"""The reference grammar (server.kit.image_refs) and resolving against a real registry
 (server.submissions.images).
 
 The grammar tests compare parse_reference with an independent transcription of
@@ -23,7 +23,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from server.submissions.image_refs import (
+from server.kit.image_refs import (
     ImageError,
     ImageNotFound,
     ImageReference,

@@ -27,11 +27,11 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from manieval.errors import ExitCode
+from server.challenges.quota import quota_use
 from server.challenges.service import ChallengeOptions
 from server.kit.db import make_engine, session_factory
 from server.kit.settings import Settings
 from server.models import Cause, State, Submission, Transition, utcnow
-from server.submissions.quota import quota_use
 from server.submissions.reports import report_state
 from server.submissions.work import claim_next, end_restarted, end_stopped
 from tests.cli.conftest import (

@@ -9,10 +9,10 @@ import pytest
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.challenges.quota import quota_use
 from server.challenges.service import get_challenge
 from server.kit.errors import QuotaExceeded
 from server.models import Challenge, State, User, utcnow
-from server.submissions.quota import quota_use
 from server.submissions.reports import report_final, report_state
 from server.teams import service as teams
 from tests.factories import make_challenge, make_user, queue_submission

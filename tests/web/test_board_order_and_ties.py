@@ -134,7 +134,7 @@ def test_rows_whose_score_intervals_overlap_the_row_above_are_tied(
 def test_a_baseline_between_two_rows_does_not_break_their_tie(
     client: TestClient, db: Session, tiny: Challenge
 ) -> None:
-    from server.leaderboard.service import refresh
+    from server.standings.entries import refresh
 
     finished(db, make_user(db, "alice"), tiny, [True] * 10)
     base = finished(db, make_user(db, "root1"), tiny, [True] * 10)

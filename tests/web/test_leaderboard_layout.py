@@ -29,8 +29,8 @@ from server.app import create_app
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
-from server.leaderboard.service import refresh
 from server.models import Challenge, State
+from server.standings.entries import refresh
 from server.submissions.reports import report_final, report_state
 from tests.factories import RecordingQueue, make_user, queue_submission
 from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving

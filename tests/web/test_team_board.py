@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
 from manieval.render import leaderboard_table, stdout
+from server.accounts.service import team_of
 from server.challenges.service import set_team_mode
 from server.models import Challenge, State, Submission, User
 from server.submissions.reports import report_final, report_state
@@ -35,7 +36,7 @@ def _done(
 
 
 def _join(db: Session, admin: User, member: User) -> None:
-    team = teams.team_of(db, user=admin)
+    team = team_of(db, user=admin)
     if team is None:
         team = teams.create_team(db, user=admin, name="grasp-lab", display_name="Grasp Lab")
     invitation = teams.invite(db, admin=admin, team=team, username=member.username)

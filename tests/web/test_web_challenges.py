@@ -8,9 +8,10 @@ from datetime import UTC, datetime, timedelta
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
-from server.challenges.pages import ScoreHistory
-from server.leaderboard.service import record_points, refresh
+from server.leaderboard.challenge_page import ScoreHistory
+from server.leaderboard.service import record_points
 from server.models import Challenge, Phase
+from server.standings.entries import refresh
 from tests.factories import make_challenge, make_user
 from tests.web.helpers import browser, finished
 

@@ -1,0 +1,89 @@
+"""A challenge's page: rules, phases, quota, seed commitments, the top of the leaderboard and
+the best score over time. It shows the challenge's board, so it lives with the leaderboard's
+pages, above the challenges (whose home page lists them, server/challenges/pages.py)."""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import Response
+from sqlalchemy.orm import Session as DB
+
+from server.accounts.deps import ViewerDep
+from server.challenges.charts import StepChart, best_over_time, step_chart
+from server.challenges.prose import markdown, markdown_inline
+from server.challenges.quota import quota_use
+from server.challenges.service import get_challenge, shown_phase, suite_of
+from server.kit.deps import DBDep
+from server.kit.pages import render
+from server.leaderboard.columns import board_columns
+from server.leaderboard.pages import top_rows
+from server.leaderboard.service import baseline_points, record_points
+from server.models import Phase, utcnow
+
+router = APIRouter(include_in_schema=False)
+
+TOP_ROWS = 10  # rows of the board shown on the challenge page
+PhaseName = Annotated[str | None, Query(max_length=32)]
+
+
+@router.get("/challenges/{slug}")
+def challenge_page(
+    slug: str, request: Request, who: ViewerDep, db: DBDep, phase: PhaseName = None
+) -> Response:
+    """Description, tasks, rules, phases, quota, seed commitments, leaderboard and history."""
+    challenge = get_challenge(db, slug=slug)
+    shown = shown_phase(challenge, name=phase)
+    now = utcnow()
+    quota = (
+        quota_use(db, user=who.user, challenge=challenge, now=now) if who.user is not None else None
+    )
+    board = top_rows(request, db, slug=challenge.slug, phase=shown.name, count=TOP_ROWS)
+    suite = suite_of(challenge)
+    return render(
+        request,
+        who,
+        "challenge.html",
+        challenge=challenge,
+        description=markdown(challenge.description),
+        phase_notes={name: markdown_inline(p.description) for name, p in suite.phases.items()},
+        suite=suite,
+        tasks=[t.env_id for t in suite.tasks],
+        columns=board_columns([t.env_id for t in suite.tasks], []),
+        phase=shown,
+        now=now,
+        quota=quota,
+        board=board,
+        chart=request.app.state.score_history.chart(db, shown),
+    )
+
+
+class ScoreHistory:
+    """Best-score-over-time charts per (phase, board version): the version changes whenever
+    something that decides the board does, so a cached chart is never stale."""
+
+    def __init__(self, size: int = 64) -> None:
+        self._charts: OrderedDict[tuple[int, int], StepChart | None] = OrderedDict()
+        self._size = size
+        self._lock = threading.Lock()
+
+    def chart(self, db: DB, phase: Phase, *, now: Callable[[], Any] = utcnow) -> StepChart | None:
+        key = (phase.id, phase.leaderboard_version)
+        with self._lock:
+            if key in self._charts:
+                self._charts.move_to_end(key)
+                return self._charts[key]
+        drawn = step_chart(
+            best_over_time(record_points(db, phase_id=phase.id)),
+            now=now(),
+            baselines=baseline_points(db, phase_id=phase.id),
+        )
+        with self._lock:
+            self._charts[key] = drawn
+            while len(self._charts) > self._size:
+                self._charts.popitem(last=False)
+        return drawn
