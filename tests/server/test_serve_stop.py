@@ -300,104 +300,6 @@ def _cmdline(process: psutil.Process) -> list[str]:
         return []
 
 
-# Ctrl-C at every point of a run ------------------------------------------------------------------
-
-INLINE_SERVE = {  # the embedded default without the registry and Podman: local policies only
-    "MANIEVAL_DEV_MODE": "true",
-    "MANIEVAL_COOKIE_SECURE": "false",
-    "MANIEVAL_ALLOW_LOCAL_POLICIES": "true",
-    "MANIEVAL_EMBEDDED_REGISTRY": "false",
-    "MANIEVAL_EMBEDDED_ENGINE": "false",
-    "MANIEVAL_INLINE_WORKERS": "1",
-    "MANIEVAL_LEADERBOARD_MAX_AGE": "0",
-}
-
-
-POINTS_SUITE = """\
-name: stop-points
-version: 1
-description: Ten random episodes of 100 steps, a few seconds' run to stop at every point.
-tasks:
-  - {env_id: PickCube-v1, max_episode_steps: 100, episodes: 10}
-phases:
-  dev: {description: Public seeds., seeds: {kind: public, start: 0}}
-conditions:
-  - {name: nominal, params: {kind: nominal}}
-limits:
-  connect_timeout_s: 120
-  first_call_timeout_s: 120
-  call_timeout_s: 10
-  budget_s: 900
-"""
-
-
-def _one_submission(launched: Launched) -> Submission | None:
-    found = submissions(launched)
-    return found[0] if found else None
-
-
-def _evaluator_started(launched: Launched) -> bool:
-    s = _one_submission(launched)
-    return s is not None and s.state == State.RUNNING
-
-
-def _reporting(launched: Launched) -> bool:
-    """Every episode is done: what remains is the report (or it has landed already)."""
-    s = _one_submission(launched)
-    if s is None or s.progress is None:
-        return False
-    return s.state == State.SUCCEEDED or s.progress.get("done") == s.progress.get("total")
-
-
-@pytest.mark.sim
-@pytest.mark.timeout(1800)
-def test_ctrl_c_at_start_up_evaluator_start_mid_episode_and_reporting_exits_each_time(
-    tmp_path: Path,
-) -> None:
-    options = ChallengeOptions(quota_per_day=5, quota_concurrent=1)
-    data, _ = data_with_challenge(tmp_path, "stop-points", POINTS_SUITE, options)
-
-    def interrupt(serve: Launched, point: str, codes: tuple[int, ...] = (0,)) -> None:
-        code, took = serve.stop(signal.SIGINT)
-        print(f"{point}: exit {code} {took:.2f} s after SIGINT")  # (-s)
-        output = serve.output()
-        assert code in codes, f"{point}:\n{output[-5000:]}"
-        assert took < EXIT_BOUND_S, f"{point}:\n{output[-5000:]}"
-        assert "Traceback" not in output, f"{point}:\n{output[-5000:]}"
-
-    with launched(["serve"], data, extra=INLINE_SERVE) as serve:
-        wait_for(lambda: "ManiEval on" in serve.output(), "starting the server", serve)
-        interrupt(serve, "start-up", (ExitCode.INTERRUPTED, 0))
-    with launched(["serve"], data, extra=INLINE_SERVE) as serve:
-        wait_for(lambda: _healthy(serve.url), "serving", serve, timeout=180)
-        alice = Participant(serve.url, tmp_path / "config-alice")
-        alice.register("alice")
-        alice.login("alice")
-        r = alice.run("submit", "local:random", "-c", "stop-points")
-        assert r.exit_code == 0, r.output
-        wait_for(lambda: _evaluator_started(serve), "the evaluator started", serve)
-        interrupt(serve, "evaluator start")
-    for attempt, (point, reached) in enumerate(
-        [("mid-episode", lambda x: mid_evaluation(x, 1)), ("reporting", _reporting)], start=2
-    ):
-        # Started as `manieval serve &` would be: SIGINT still stops it (docs/server.md).
-        with launched(["serve"], data, extra=INLINE_SERVE, sigint_ignored=True) as serve:
-            wait_for(lambda: reached(serve), point, serve)  # noqa: B023 - used in this pass
-            interrupt(serve, point)
-            s = _one_submission(serve)
-            assert s is not None
-            assert (s.state, s.attempt) in [(State.QUEUED, attempt + 1), (State.SUCCEEDED, attempt)]
-    if s.state == State.QUEUED:  # stopped while reporting: the next start runs it to the end
-        with launched(["serve"], data, extra=INLINE_SERVE) as serve:
-            wait_for(lambda: _healthy(serve.url), "serving", serve, timeout=180)
-            wait_for(
-                lambda: [x.state for x in submissions(serve)] == [State.SUCCEEDED],
-                "the interrupted run finished",
-                serve,
-            )
-            interrupt(serve, "done")
-
-
 # A policy container -----------------------------------------------------------------------------
 
 SUITE = """\
@@ -497,6 +399,91 @@ def _healthy(url: str) -> bool:
         return httpx.get(f"{url}/healthz", timeout=2).status_code == 200
     except httpx.TransportError:
         return False
+
+
+# Ctrl-C at every point of a run ------------------------------------------------------------------
+
+INLINE_SERVE = {  # the embedded default without the registry and Podman: local policies only
+    "MANIEVAL_DEV_MODE": "true",
+    "MANIEVAL_COOKIE_SECURE": "false",
+    "MANIEVAL_ALLOW_LOCAL_POLICIES": "true",
+    "MANIEVAL_EMBEDDED_REGISTRY": "false",
+    "MANIEVAL_EMBEDDED_ENGINE": "false",
+    "MANIEVAL_INLINE_WORKERS": "1",
+    "MANIEVAL_LEADERBOARD_MAX_AGE": "0",
+}
+
+
+POINTS_SUITE = SUITE.replace("name: stop-long", "name: stop-points").replace(
+    "max_episode_steps: 50, episodes: 6", "max_episode_steps: 100, episodes: 10"
+)  # ten random episodes of 100 steps: a few seconds' run to stop at every point
+
+
+def _one_submission(launched: Launched) -> Submission | None:
+    found = submissions(launched)
+    return found[0] if found else None
+
+
+def _evaluator_started(launched: Launched) -> bool:
+    s = _one_submission(launched)
+    return s is not None and s.state == State.RUNNING
+
+
+def _reporting(launched: Launched) -> bool:
+    """Every episode is done: what remains is the report (or it has landed already)."""
+    s = _one_submission(launched)
+    if s is None or s.progress is None:
+        return False
+    return s.state == State.SUCCEEDED or s.progress.get("done") == s.progress.get("total")
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(1800)
+def test_ctrl_c_at_start_up_evaluator_start_mid_episode_and_reporting_exits_each_time(
+    tmp_path: Path,
+) -> None:
+    options = ChallengeOptions(quota_per_day=5, quota_concurrent=1)
+    data, _ = data_with_challenge(tmp_path, "stop-points", POINTS_SUITE, options)
+
+    def interrupt(serve: Launched, point: str, codes: tuple[int, ...] = (0,)) -> None:
+        code, took = serve.stop(signal.SIGINT)
+        print(f"{point}: exit {code} {took:.2f} s after SIGINT")  # (-s)
+        output = serve.output()
+        assert code in codes, f"{point}:\n{output[-5000:]}"
+        assert took < EXIT_BOUND_S, f"{point}:\n{output[-5000:]}"
+        assert "Traceback" not in output, f"{point}:\n{output[-5000:]}"
+
+    with launched(["serve"], data, extra=INLINE_SERVE) as serve:
+        wait_for(lambda: "ManiEval on" in serve.output(), "starting the server", serve)
+        interrupt(serve, "start-up", (ExitCode.INTERRUPTED, 0))
+    with launched(["serve"], data, extra=INLINE_SERVE) as serve:
+        wait_for(lambda: _healthy(serve.url), "serving", serve, timeout=180)
+        alice = Participant(serve.url, tmp_path / "config-alice")
+        alice.register("alice")
+        alice.login("alice")
+        r = alice.run("submit", "local:random", "-c", "stop-points")
+        assert r.exit_code == 0, r.output
+        wait_for(lambda: _evaluator_started(serve), "the evaluator started", serve)
+        interrupt(serve, "evaluator start")
+    for attempt, (point, reached) in enumerate(
+        [("mid-episode", lambda x: mid_evaluation(x, 1)), ("reporting", _reporting)], start=2
+    ):
+        # Started as `manieval serve &` would be: SIGINT still stops it (docs/server.md).
+        with launched(["serve"], data, extra=INLINE_SERVE, sigint_ignored=True) as serve:
+            wait_for(lambda: reached(serve), point, serve)  # noqa: B023 - used in this pass
+            interrupt(serve, point)
+            s = _one_submission(serve)
+            assert s is not None
+            assert (s.state, s.attempt) in [(State.QUEUED, attempt + 1), (State.SUCCEEDED, attempt)]
+    if s.state == State.QUEUED:  # stopped while reporting: the next start runs it to the end
+        with launched(["serve"], data, extra=INLINE_SERVE) as serve:
+            wait_for(lambda: _healthy(serve.url), "serving", serve, timeout=180)
+            wait_for(
+                lambda: [x.state for x in submissions(serve)] == [State.SUCCEEDED],
+                "the interrupted run finished",
+                serve,
+            )
+            interrupt(serve, "done")
 
 
 # The last resort ---------------------------------------------------------------------------------
