@@ -25,11 +25,12 @@ lint: install
 
 # The suite in parallel workers: most of its slow tests wait (on a server, a container, a database
 # coming back) rather than compute, so more workers than cores pay. Each worker has its own
-# databases, ports and data directories. `make test TEST_WORKERS=0` runs it in one process.
+# databases, ports and data directories, and takes whole modules (their fixtures built once),
+# the `long` ones first. `make test TEST_WORKERS=0` runs it in one process.
 TEST_WORKERS ?= 4
 
 test: lint
-	$(BIN)/pytest -n $(TEST_WORKERS) --dist worksteal
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder --durations=30
 
 demo: install
 	$(BIN)/manieval demo

@@ -16,7 +16,7 @@ import pytest
 from tests.cli.conftest import Participant, free_port
 from tests.cli.push_support import CHALLENGE, TAG, Embedded, build_template, embedded_service
 
-pytestmark = pytest.mark.sim
+pytestmark = [pytest.mark.sim, pytest.mark.long]
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,7 @@ from tests.evaluator.conftest import (
     tiny_plan,
 )
 
-pytestmark = pytest.mark.sim
+pytestmark = [pytest.mark.sim, pytest.mark.long]
 
 
 def test_two_workers_give_the_same_episode_records_as_one(make_policy: Callable[[str], Path]):

@@ -18,7 +18,8 @@ from evaluator.results import EvaluationResult
 from evaluator.suite import load_suite
 from tests.evaluator.conftest import SCRIPTED, TIMINGS, run, tiny_plan
 
-pytestmark = pytest.mark.sim
+# `alone` runs 30 episodes one by one, each in fresh processes: minutes on a busy machine.
+pytestmark = [pytest.mark.sim, pytest.mark.long, pytest.mark.timeout(900)]
 
 # On PickCube-v1 with a reused scene, seed 7012 came out differently after 7011 (ManiSkill 3.0.1).
 SEEDS = (7011, 7012, 7013)

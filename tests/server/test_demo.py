@@ -12,7 +12,7 @@ import pytest
 
 from tests.server.registry_fixture import require_tool
 
-pytestmark = pytest.mark.sim
+pytestmark = [pytest.mark.sim, pytest.mark.long]
 
 
 def free_port() -> int:

@@ -32,7 +32,7 @@ from worker.embedded import EmbeddedWorker
 
 API = "/api/v1"
 FINAL = ("succeeded", "failed", "error", "cancelled", "timed_out")
-pytestmark = pytest.mark.sim
+pytestmark = [pytest.mark.sim, pytest.mark.long]
 
 
 def free_port() -> int:

@@ -792,7 +792,10 @@ class SlowRegistry:
             head, body = f"401 Unauthorized\r\nWWW-Authenticate: {realm}", b"{}"
         else:
             head, body = f"200 OK\r\nContent-Type: {OCI_MANIFEST}", manifest_bytes()
-        return f"HTTP/1.1 {head}\r\nContent-Length: {len(body)}\r\n\r\n".encode() + body
+        # The handler closes the connection after each answer, and says so: a client that
+        # reused it would race the close (on a busy machine the next request lost).
+        length = f"Content-Length: {len(body)}\r\nConnection: close"
+        return f"HTTP/1.1 {head}\r\n{length}\r\n\r\n".encode() + body
 
     def resolve(self, *, timeout: float) -> ResolvedImage:
         client = RegistryClient(

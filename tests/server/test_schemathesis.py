@@ -55,6 +55,8 @@ from server.submissions.reports import report_final, report_state
 from server.submissions.service import submit
 from tests.factories import PASSWORD, SUITE, RecordingQueue, fake_resolve_for
 
+pytestmark = pytest.mark.long
+
 SECRET = "ALICE-PRIVATE-3f9c"  # appears only in Alice's private data
 PG_ADMIN_URL = os.environ.get(
     "MANIEVAL_TEST_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"

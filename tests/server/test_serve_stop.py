@@ -54,6 +54,8 @@ from tests.factories import PASSWORD, make_challenge, make_user, queue_submissio
 from tests.server.registry_fixture import require_tool
 from worker.containers import LABEL_ATTEMPT, LABEL_SUBMISSION
 
+pytestmark = pytest.mark.long
+
 INTERRUPTED = "interrupted: the service was stopped; queued again"
 EXIT_BOUND_S = 60.0  # the acceptance asks for 10 s; a loaded CI machine gets room (see -s)
 

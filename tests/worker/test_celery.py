@@ -46,7 +46,7 @@ from tests.worker.celery_workers import (
 )
 from tests.worker.redis_server import Redis, free_port
 
-pytestmark = pytest.mark.sim
+pytestmark = [pytest.mark.sim, pytest.mark.long]
 REPO = Path(__file__).resolve().parents[2]
 FINAL = {"succeeded", "failed", "error", "cancelled", "timed_out"}
 STOP_S = 120.0  # a cancelled or lost run is left well within this (it would run for minutes)

@@ -49,6 +49,8 @@ from worker.containers import (
     share_socket,
 )
 
+pytestmark = pytest.mark.long
+
 DIGEST = "sha256:" + "ab" * 32
 LIMITS = ContainerLimits(memory_mib=256, cpus=1.0, pids=64, tmpfs_mib=16)
 GIVE_UP_S = 60  # the longest any misbehaving policy may hold an evaluation here

@@ -43,6 +43,8 @@ from evaluator.suite import Suite, SuiteError
 from tests.evaluator.conftest import REPO, SCRIPTED, episode_records, tiny_suite
 from tests.worker.k8s_double import POLICY_IMAGE, TINY_SUITE, tiny_evaluation
 
+pytestmark = pytest.mark.long
+
 STARTED = datetime(2026, 5, 1, tzinfo=UTC)
 SECRET_SUITE = """
 name: hidden

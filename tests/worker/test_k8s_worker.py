@@ -55,6 +55,8 @@ from worker.run import run_next
 from worker.server_api import ServerAPI
 from worker.settings import WorkerSettings
 
+pytestmark = pytest.mark.long
+
 STARTED = datetime(2026, 5, 1, tzinfo=UTC)
 
 

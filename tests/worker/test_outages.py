@@ -40,7 +40,7 @@ from tests.private_postgres import PrivatePostgres
 from tests.worker.celery_workers import add_challenge, celery_worker, wait_ready, worker_environment
 from tests.worker.redis_server import Redis, free_port
 
-pytestmark = [pytest.mark.sim, pytest.mark.timeout(900)]
+pytestmark = [pytest.mark.sim, pytest.mark.long, pytest.mark.timeout(900)]
 ROUNDS = 10
 CLAIM_ROUNDS = 3  # each round stops the database at the same point of a claim
 OUTAGE_S = 5.0
