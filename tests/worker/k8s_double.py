@@ -256,6 +256,11 @@ class ApiServerDouble:
         with self.lock:
             self.faults += [Fault(method, path_part, s, retry_after, apply) for s in statuses]
 
+    def clear_faults(self) -> None:
+        """Answer every request normally again (the faults not yet used are dropped)."""
+        with self.lock:
+            self.faults.clear()
+
     @_publishes
     def put_job(self, manifest: Json) -> Json:
         """Store a Job as if someone had created it earlier."""

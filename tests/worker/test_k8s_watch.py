@@ -209,11 +209,14 @@ def test_an_unreachable_api_server_is_reported_then_forgotten_once_back(
 ):
     until(lambda: cluster.synced, "the first lists")
     apiserver.expire_watches()  # both watches end and list again...
-    apiserver.fail_next("GET", "/jobs", 500)  # ...and that list fails once
+    # ...and that list fails until the failure has been seen (once, the retry after a jittered
+    # back-off could end it before a busy test looked).
+    apiserver.fail_next("GET", "/jobs", *[500] * 1000)
     until(lambda: cluster.failing() is not None, "the failure")
     failure = cluster.failing()
     assert failure is not None
     assert "500" in failure.error
+    apiserver.clear_faults()
     name = start_job(apiserver)
     until(lambda: cluster.job(name) is not None, "the Job, once the server answers")
     until(lambda: cluster.failing() is None, "the failure forgotten")
