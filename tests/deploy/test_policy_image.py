@@ -99,7 +99,9 @@ def policy_base(container_engine: ContainerEngine, session: str) -> Iterator[str
         timeout=900,
     )
     yield tag
-    container_engine.podman("untag", tag)
+    # This name only: `podman untag IMAGE` alone removes every name of the image, and another
+    # session's build of the same Dockerfile is the same image under its own name.
+    container_engine.podman("untag", tag, tag)
 
 
 def test_the_base_runs_the_sdks_dependencies_as_the_policy_user_without_network(
