@@ -64,14 +64,14 @@ from server.kit.db import make_engine, session_factory, upgrade  # noqa: E402
 from server.kit.settings import Settings  # noqa: E402
 from server.models import Challenge, Submission, User  # noqa: E402
 from server.submissions.service import Resolved, cancel, submit  # noqa: E402
-from tests.factories import PASSWORD, make_user  # noqa: E402
-from tests.worker.k8s_double import (  # noqa: E402
+from testkit.factories import PASSWORD, make_user  # noqa: E402
+from testkit.k8s_double import (  # noqa: E402
     EVALUATOR_IMAGE,
     NAMESPACE,
     POLICY_IMAGE,
     ApiServerDouble,
 )
-from tests.workers import server_api, server_app, worker_settings  # noqa: E402
+from testkit.workers import server_api, server_app, worker_settings  # noqa: E402
 from worker.containers import LABEL_ATTEMPT, LABEL_SUBMISSION, engine  # noqa: E402
 from worker.kubernetes.manifest import job_name  # noqa: E402
 from worker.run import run_next  # noqa: E402

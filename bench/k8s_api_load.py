@@ -39,11 +39,10 @@ from evaluator.plan import EvaluationPlan, build_plan  # noqa: E402
 from evaluator.runner import ShardOutcome  # noqa: E402
 from evaluator.suite import load_suite  # noqa: E402
 from internal_api.schemas import Assignment, FinalReport, ReportOut, State  # noqa: E402
-from tests.worker.k8s_double import (  # noqa: E402
+from testkit.k8s_double import (  # noqa: E402
     EVALUATOR_IMAGE,
     NAMESPACE,
     POLICY_IMAGE,
-    TINY_SUITE,
     ApiServerDouble,
 )
 from worker.kubernetes.manifest import job_name  # noqa: E402
@@ -51,6 +50,8 @@ from worker.kubernetes.watch import run_as_job  # noqa: E402
 from worker.server_api import ServerAPI  # noqa: E402
 from worker.settings import WorkerSettings  # noqa: E402
 
+# The plan only sizes the documents the stand-in server keeps: two episodes of one task.
+SUITE = REPO / "suites" / "maniskill-core.yaml"
 FIGURE = "k8s_api_requests_per_job_per_min"
 
 
@@ -102,7 +103,14 @@ def per_minute(counts: Counter[str], jobs: int, seconds: float) -> dict[str, flo
 
 
 def run(args: argparse.Namespace) -> None:
-    plan = build_plan(load_suite(TINY_SUITE), "dev", secret=b"k8s-api-load-bench-secret-32-byt")
+    plan = build_plan(
+        load_suite(SUITE),
+        "dev",
+        tasks=["PickCube-v1"],
+        conditions=["nominal"],
+        episodes=2,
+        secret=b"k8s-api-load-bench-secret-32-byt",
+    )
     document = result_document(plan)
     settings = WorkerSettings(
         worker_token="k8s-api-load-bench-" + "x" * 32,  # type: ignore[arg-type]
@@ -125,7 +133,7 @@ def run(args: argparse.Namespace) -> None:
                 attempt=1,
                 image=POLICY_IMAGE,
                 plan=plan,
-                suite_yaml=TINY_SUITE.read_text(),
+                suite_yaml=SUITE.read_text(),
                 shards=1,
             )
             api = cast(ServerAPI, server)

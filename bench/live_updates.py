@@ -47,7 +47,7 @@ from server.models import State  # noqa: E402
 from server.submissions import events  # noqa: E402
 from server.submissions.changes import ChangeFeed  # noqa: E402
 from server.submissions.reports import report_progress, report_state  # noqa: E402
-from tests.factories import make_challenge, make_user, queue_submission  # noqa: E402
+from testkit.factories import make_challenge, make_user, queue_submission  # noqa: E402
 
 
 class Deaf(ChangeFeed):

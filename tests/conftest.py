@@ -27,7 +27,7 @@ from server.kit.db import make_engine, upgrade
 from server.kit.ratelimit import MemoryRateLimiter
 from server.kit.settings import Settings
 from server.models import Base
-from tests.factories import RecordingQueue, fake_resolve_for
+from testkit.factories import RecordingQueue, fake_resolve_for
 
 # Property tests (and schemathesis) try the same examples on every run: what they find is a
 # finding, never a coin toss in CI. `pytest --hypothesis-profile=explore` searches anew.

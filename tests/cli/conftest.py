@@ -26,7 +26,7 @@ from typer.testing import CliRunner, Result
 from manieval.cli import app
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.settings import Settings
-from tests.factories import PASSWORD, SUITE, embedded_database
+from testkit.factories import PASSWORD, SUITE, embedded_database
 
 REPO = Path(__file__).resolve().parents[2]
 STARTUP_SECONDS = 90.0

@@ -18,8 +18,8 @@ import httpx
 import pytest
 
 from manieval.errors import ExitCode
+from testkit.factories import PASSWORD
 from tests.cli.conftest import LiveServer, Participant, participant, running_server
-from tests.factories import PASSWORD
 
 pytestmark = pytest.mark.sim
 ACCEPTED = re.compile(r"submission (\d+) accepted")

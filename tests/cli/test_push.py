@@ -36,7 +36,7 @@ def registered(embedded: Embedded, name: str) -> tuple[Participant, dict[str, st
 
 
 def _password() -> str:
-    from tests.factories import PASSWORD
+    from testkit.factories import PASSWORD
 
     return PASSWORD + "\n"
 

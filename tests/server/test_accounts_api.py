@@ -10,7 +10,7 @@ from server.app import create_app
 from server.kit.ratelimit import MemoryRateLimiter
 from server.kit.settings import Settings
 from server.models import ApiToken
-from tests.factories import PASSWORD, RecordingQueue, fake_resolve_for, token_for
+from testkit.factories import PASSWORD, RecordingQueue, fake_resolve_for, token_for
 
 API = "/api/v1"
 

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from manieval.cli import app
 from server.kit.db import make_engine, session_factory
 from server.models import Challenge, User
-from tests.factories import PASSWORD, SUITE
+from testkit.factories import PASSWORD, SUITE
 
 runner = CliRunner()
 

@@ -43,7 +43,7 @@ from server.kit.ratelimit import MemoryRateLimiter
 from server.kit.settings import Settings
 from server.models import User
 from server.models.accounts import EmailToken
-from tests.factories import (
+from testkit.factories import (
     PASSWORD,
     RecordingQueue,
     fake_resolve_for,

@@ -25,9 +25,9 @@ from server.kit.db import make_engine, session_factory
 from server.kit.settings import Settings
 from server.models import Cause, Submission, Transition
 from server.submissions.work import end_stopped
+from testkit.factories import PASSWORD, embedded_database, token_for
+from testkit.workers import server_api, worker_settings
 from tests.cli.conftest import running_server
-from tests.factories import PASSWORD, embedded_database, token_for
-from tests.workers import server_api, worker_settings
 from worker.embedded import EmbeddedWorker
 
 API = "/api/v1"

@@ -18,8 +18,8 @@ import httpx
 from manieval.engines import Engines, EngineSettings
 from manieval.supervise import Supervised
 from server.kit.settings import Settings
+from testkit.factories import PASSWORD
 from tests.cli.conftest import free_port, running_server
-from tests.factories import PASSWORD
 from tests.server.registry_fixture import require_tool
 
 

@@ -30,7 +30,7 @@ from sqlalchemy.orm import Session
 from server.accounts import service as accounts
 from server.kit.db import ROOT
 from server.kit.settings import Settings
-from tests.factories import PASSWORD, make_challenge, make_user, queue_submission, token_for
+from testkit.factories import PASSWORD, make_challenge, make_user, queue_submission, token_for
 from tests.web.helpers import browser, csrf_of
 
 API = "/api/v1"

@@ -31,7 +31,7 @@ from server.challenges.service import suite_of
 from server.kit.settings import Settings
 from server.models import Cause, Submission, TaskResultRow, Transition, utcnow
 from server.submissions.service import cancel
-from tests.factories import (
+from testkit.factories import (
     RecordingQueue,
     make_challenge,
     make_user,
@@ -39,7 +39,7 @@ from tests.factories import (
     result_doc,
     token_for,
 )
-from tests.workers import server_api, server_app, worker_settings
+from testkit.workers import server_api, server_app, worker_settings
 from worker.server_api import ServerAPI, WorkerRefused
 
 ATTEMPT = "/internal/v1/submissions/{sid}/attempts/{attempt}"

@@ -10,7 +10,7 @@ from server.models import Challenge, LeaderboardEntry, State, Submission, User
 from server.submissions.reports import report_final, report_state
 from server.submissions.service import edit
 from server.teams import service as teams
-from tests.factories import make_challenge, make_user, queue_submission, result_doc
+from testkit.factories import make_challenge, make_user, queue_submission, result_doc
 
 
 def _done(db: Session, user: User, challenge: Challenge, successes: list[bool]) -> Submission:

@@ -22,7 +22,7 @@ from server.models import Challenge, State, Submission, User
 from server.standings.entries import refresh
 from server.submissions.reports import report_final, report_state
 from server.teams import service as teams
-from tests.factories import make_challenge, make_user, queue_submission, result_doc
+from testkit.factories import make_challenge, make_user, queue_submission, result_doc
 
 SLUG, PHASE = "server-tiny", "dev"
 

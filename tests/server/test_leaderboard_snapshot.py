@@ -20,7 +20,7 @@ from server.leaderboard import snapshot
 from server.leaderboard.snapshot import Snapshots
 from server.models import LeaderboardEntry, Phase, State, Submission
 from server.submissions.reports import report_final, report_state
-from tests.factories import make_challenge, make_user, queue_submission, result_doc
+from testkit.factories import make_challenge, make_user, queue_submission, result_doc
 
 BOARD = "/api/v1/challenges/server-tiny/leaderboard"
 

@@ -15,7 +15,7 @@ from internal_api.logs import JsonFormatter, configure_logging
 from server.kit.observability import ServiceCollector, error_kind
 from server.models import State, Submission, utcnow
 from server.submissions.reports import report_final, report_state
-from tests.factories import make_challenge, make_user, queue_submission
+from testkit.factories import make_challenge, make_user, queue_submission
 
 
 def samples(collector: ServiceCollector) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:

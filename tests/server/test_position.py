@@ -9,7 +9,7 @@ from sqlalchemy.orm import Session
 
 from server.models import State, Submission
 from server.submissions.position import QueuePlace, describe, expected_start, ordinal, queue_place
-from tests.factories import make_challenge, make_user, queue_submission
+from testkit.factories import make_challenge, make_user, queue_submission
 
 NOW = datetime(2026, 1, 1, 12, 0, tzinfo=UTC)
 

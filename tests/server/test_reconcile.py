@@ -18,7 +18,7 @@ from server.submissions.reconcile import reconcile, silent
 from server.submissions.reports import report_final, report_state
 from server.submissions.states import new_attempt
 from server.submissions.work import claim_next, end_restarted
-from tests.factories import RecordingQueue, make_challenge, make_user, queue_submission
+from testkit.factories import RecordingQueue, make_challenge, make_user, queue_submission
 
 LATER = timedelta(minutes=4)  # past the heartbeat timeout (3 minutes)
 

@@ -34,7 +34,7 @@ from server.registry import service as registry
 from server.registry.config import TOKEN_PATH, registry_config
 from server.registry.tokens import Access
 from server.submissions.images import image_resolver
-from tests.factories import RecordingQueue, make_challenge, make_user
+from testkit.factories import RecordingQueue, make_challenge, make_user
 from tests.server.registry_fixture import (
     REGISTRY_BINARY,
     RegistryLogin,

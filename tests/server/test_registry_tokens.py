@@ -25,7 +25,7 @@ from server.models import User
 from server.registry.config import registry_config
 from server.registry.keys import SigningKeyMissing, ensure_signing_key, load_signing_key
 from server.registry.tokens import Access, Grantee, grant, namespace_for, parse_scopes
-from tests.factories import RecordingQueue, fake_resolve_for, make_user
+from testkit.factories import RecordingQueue, fake_resolve_for, make_user
 
 PULL_PASSWORD = "pull-" + "q" * 40
 

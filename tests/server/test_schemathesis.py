@@ -53,7 +53,7 @@ from server.models import Phase, State
 from server.models.base import Base
 from server.submissions.reports import report_final, report_state
 from server.submissions.service import submit
-from tests.factories import PASSWORD, SUITE, RecordingQueue, fake_resolve_for
+from testkit.factories import PASSWORD, SUITE, RecordingQueue, fake_resolve_for
 
 pytestmark = pytest.mark.long
 

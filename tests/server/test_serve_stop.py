@@ -34,6 +34,7 @@ from server.kit.settings import Settings
 from server.models import Cause, State, Submission, Transition, utcnow
 from server.submissions.reports import report_state
 from server.submissions.work import claim_next, end_restarted, end_stopped
+from testkit.factories import PASSWORD, make_challenge, make_user, queue_submission
 from tests.cli.conftest import (
     REPO,
     LiveServer,
@@ -50,7 +51,6 @@ from tests.cli.push_support import (
     data_with_challenge,
     remove_images,
 )
-from tests.factories import PASSWORD, make_challenge, make_user, queue_submission
 from tests.server.registry_fixture import require_tool
 from worker.containers import LABEL_ATTEMPT, LABEL_SUBMISSION
 

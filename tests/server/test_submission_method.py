@@ -10,7 +10,7 @@ from sqlalchemy.orm import Session
 from manieval.client import MethodInfo
 from server.kit.errors import Invalid
 from server.submissions.method import Method, link_problem
-from tests.factories import make_challenge, make_user, token_for
+from testkit.factories import make_challenge, make_user, token_for
 
 API = "/api/v1"
 IMAGE = "127.0.0.1:5000/team/policy:v1"

@@ -16,7 +16,7 @@ from server.models import Outbox, State, Submission, Transition
 from server.submissions.outbox import Unattached
 from server.submissions.reports import report_final, report_state
 from server.submissions.states import transition
-from tests.factories import RecordingQueue, make_challenge, make_user, result_doc, token_for
+from testkit.factories import RecordingQueue, make_challenge, make_user, result_doc, token_for
 
 API = "/api/v1"
 IMAGE = "127.0.0.1:5000/team/policy:v1"

@@ -14,7 +14,7 @@ from server.app import create_app
 from server.kit.ratelimit import MemoryRateLimiter
 from server.kit.settings import Settings
 from server.submissions.images import image_resolver
-from tests.factories import RecordingQueue, make_challenge, make_user, token_for
+from testkit.factories import RecordingQueue, make_challenge, make_user, token_for
 from tests.server.registry_fixture import (  # noqa: F401 - pytest fixtures
     LocalRegistry,
     PushedImage,

@@ -15,7 +15,7 @@ from server.kit.errors import QuotaExceeded
 from server.models import Challenge, State, User, utcnow
 from server.submissions.reports import report_final, report_state
 from server.teams import service as teams
-from tests.factories import make_challenge, make_user, queue_submission
+from testkit.factories import make_challenge, make_user, queue_submission
 
 
 def _team(db: Session, *members: User) -> None:

@@ -17,7 +17,7 @@ from server.kit.errors import AppError
 from server.models import LeaderboardEntry, State, Team, TeamMember, User
 from server.submissions.reports import report_final, report_state
 from server.teams import service as teams
-from tests.factories import make_challenge, make_user, queue_submission, result_doc
+from testkit.factories import make_challenge, make_user, queue_submission, result_doc
 
 ROUNDS = 8
 postgres = pytest.mark.parametrize("engine", ["postgres"], indirect=True)

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.kit.errors import NotFound
 from server.models import Team, TeamInvitation, User
 from server.teams import service as teams
-from tests.factories import make_user, token_for
+from testkit.factories import make_user, token_for
 
 API = "/api/v1"
 

@@ -13,7 +13,7 @@ from server.app import create_app
 from server.kit.db import make_engine, session_factory
 from server.kit.security import new_secret
 from server.kit.settings import Settings
-from tests.factories import RecordingQueue
+from testkit.factories import RecordingQueue
 from tests.worker.redis_server import free_port
 
 

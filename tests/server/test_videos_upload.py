@@ -15,8 +15,8 @@ from internal_api.schemas import State
 from server.kit.errors import Invalid
 from server.kit.settings import Settings
 from server.submissions.video_store import NotAVideo, VideoStore, VideoTooLarge
-from tests.factories import RecordingQueue, make_challenge, make_user, queue_submission
-from tests.workers import server_api, server_app, worker_settings
+from testkit.factories import RecordingQueue, make_challenge, make_user, queue_submission
+from testkit.workers import server_api, server_app, worker_settings
 from worker.outcome import ended
 from worker.server_api import ServerAPI
 

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session, joinedload, sessionmaker
 
 from server.models import State, Submission
 from server.submissions.work import claim_next, fair_order
-from tests.factories import make_challenge, make_user, queue_submission
+from testkit.factories import make_challenge, make_user, queue_submission
 
 
 def test_a_burst_from_one_user_does_not_starve_the_others() -> None:

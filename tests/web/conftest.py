@@ -10,7 +10,7 @@ import pytest
 from sqlalchemy.orm import Session
 
 from server.models import Challenge
-from tests.factories import make_challenge
+from testkit.factories import make_challenge
 
 
 @pytest.fixture

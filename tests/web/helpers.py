@@ -13,7 +13,7 @@ from evaluator.results import (
 )
 from server.models import Challenge, State, Submission, User
 from server.submissions.reports import report_final, report_state
-from tests.factories import PASSWORD, queue_submission, result_doc
+from testkit.factories import PASSWORD, queue_submission, result_doc
 
 WEB_CONDITIONS = ("nominal", "obs_noise")  # the server-tiny suite's conditions
 

@@ -16,7 +16,7 @@ from server.app import create_app
 from server.kit.apidocs import mount_api_docs
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
-from tests.factories import RecordingQueue
+from testkit.factories import RecordingQueue
 from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving
 
 

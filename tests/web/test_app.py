@@ -11,7 +11,7 @@ from server.app import create_app
 from server.kit.ratelimit import MemoryRateLimiter
 from server.kit.settings import Settings
 from server.models import Challenge
-from tests.factories import RecordingQueue, fake_resolve_for
+from testkit.factories import RecordingQueue, fake_resolve_for
 
 
 def app_client(

@@ -15,7 +15,7 @@ from evaluator.results import ConditionResult, aggregate_task
 from server.challenges.service import ChallengeOptions, display_title, load_challenge
 from server.models import Challenge, State
 from server.submissions.reports import report_final, report_state
-from tests.factories import SUITE, make_challenge, make_user, queue_submission, result_doc
+from testkit.factories import SUITE, make_challenge, make_user, queue_submission, result_doc
 from tests.web.helpers import finished
 
 # Tasks and conditions deliberately out of alphabetical order.

@@ -22,7 +22,7 @@ import uvicorn
 from manieval.service import embedded_worker_settings
 from server.app import create_app
 from server.kit.settings import Settings
-from tests.factories import embedded_database
+from testkit.factories import embedded_database
 from worker.embedded import EmbeddedWorker, InlineQueue
 
 pytestmark = pytest.mark.sim

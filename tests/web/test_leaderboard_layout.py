@@ -32,7 +32,7 @@ from server.kit.settings import Settings
 from server.models import Challenge, State
 from server.standings.entries import refresh
 from server.submissions.reports import report_final, report_state
-from tests.factories import RecordingQueue, make_user, queue_submission
+from testkit.factories import RecordingQueue, make_user, queue_submission
 from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving
 
 SUITE = load_suite("maniskill-core")

@@ -13,7 +13,7 @@ from server.app import create_app
 from server.kit.ratelimit import MemoryRateLimiter
 from server.kit.settings import Settings
 from server.models import Challenge
-from tests.factories import RecordingQueue, fake_resolve_for, make_user
+from testkit.factories import RecordingQueue, fake_resolve_for, make_user
 from tests.web.helpers import browser, csrf_of, finished
 
 PAGE = "/challenges/server-tiny/leaderboard?phase=dev"

@@ -16,7 +16,7 @@ from server.challenges.service import set_team_mode
 from server.models import Challenge, State, Submission, User
 from server.submissions.reports import report_final, report_state
 from server.teams import service as teams
-from tests.factories import make_challenge, make_user, queue_submission, result_doc
+from testkit.factories import make_challenge, make_user, queue_submission, result_doc
 
 BOARD = "/api/v1/challenges/server-tiny/leaderboard?phase=dev"
 

@@ -23,7 +23,7 @@ from manieval.service import Service
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
-from tests.factories import PASSWORD, make_user
+from testkit.factories import PASSWORD, make_user
 from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium
 
 pytestmark = pytest.mark.sim

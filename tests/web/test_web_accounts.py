@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session
 
 from server.kit.settings import Settings
 from server.models.accounts import EmailToken
-from tests.factories import PASSWORD, make_challenge, make_user
+from testkit.factories import PASSWORD, make_challenge, make_user
 from tests.web.helpers import browser, csrf_of
 
 TOKEN = re.compile(r"mev_[a-z2-7]{8}_[A-Za-z0-9_-]{43}")

@@ -12,7 +12,7 @@ from server.leaderboard.challenge_page import ScoreHistory
 from server.leaderboard.service import record_points
 from server.models import Challenge, Phase
 from server.standings.entries import refresh
-from tests.factories import make_challenge, make_user
+from testkit.factories import make_challenge, make_user
 from tests.web.helpers import browser, finished
 
 

@@ -17,7 +17,7 @@ from server.kit.settings import Settings
 from server.models import State, Transition
 from server.submissions.events import StreamTiming
 from server.submissions.reports import report_final, report_progress, report_state
-from tests.factories import (
+from testkit.factories import (
     RecordingQueue,
     fake_resolve_for,
     make_challenge,

@@ -17,7 +17,7 @@ from server.app import create_app
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
 from server.models import Challenge
-from tests.factories import PASSWORD, RecordingQueue, make_user
+from testkit.factories import PASSWORD, RecordingQueue, make_user
 from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving
 from tests.web.helpers import browser, csrf_of
 

@@ -17,7 +17,7 @@ from server.kit.settings import Settings
 from server.models import Challenge
 from server.submissions.images import image_resolver
 from server.submissions.service import ImageGate
-from tests.factories import FakeRegistry, RecordingQueue, make_user, queue_submission
+from testkit.factories import FakeRegistry, RecordingQueue, make_user, queue_submission
 from tests.web.helpers import browser, csrf_of
 
 FORM = "/challenges/server-tiny/submit"

@@ -9,7 +9,7 @@ from sqlalchemy.orm import Session
 from evaluator.results import Video
 from server.kit.settings import Settings
 from server.models import Challenge, State, Submission
-from tests.factories import RecordingQueue, make_user
+from testkit.factories import RecordingQueue, make_user
 from tests.web.helpers import browser, csrf_of, finished
 
 SECRET = "PRIVATE-LOG-LINE-7c1"
@@ -157,7 +157,7 @@ def test_the_owner_cancels_and_changes_visibility(
     client: TestClient, db: Session, tiny: Challenge, people: dict[str, TestClient]
 ) -> None:
     from server.models import User
-    from tests.factories import queue_submission
+    from testkit.factories import queue_submission
 
     alice = db.query(User).filter_by(username="alice").one()
     s = queue_submission(db, alice, tiny)

@@ -11,7 +11,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from server.models import Challenge, State, Submission
-from tests.factories import RecordingQueue, make_challenge, make_user
+from testkit.factories import RecordingQueue, make_challenge, make_user
 from tests.web.helpers import browser, csrf_of, finished
 
 FORM = "/challenges/server-tiny/submit"

@@ -7,7 +7,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from server.models import Challenge, Submission
-from tests.factories import RecordingQueue, make_user
+from testkit.factories import RecordingQueue, make_user
 from tests.web.helpers import browser
 from tests.web.test_web_submit import field_error, send
 

@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
 from server.models import Challenge, State
-from tests.factories import make_user
+from testkit.factories import make_user
 from tests.web.helpers import browser, csrf_of, finished
 
 HOSTILE = '<script>alert("x")</script><img src=x onerror=alert(1)>'

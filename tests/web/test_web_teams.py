@@ -9,7 +9,7 @@ from typing import Any
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
-from tests.factories import make_user
+from testkit.factories import make_user
 from tests.web.helpers import browser, csrf_of
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.settings import Settings
-from tests.factories import SUITE
+from testkit.factories import SUITE
 
 REPO = Path(__file__).resolve().parents[2]
 WORKER_START_S = 180.0  # a loaded 2-core machine imports torch and ManiSkill slowly

@@ -9,8 +9,8 @@ import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.kit.settings import Settings
-from tests.factories import RecordingQueue
-from tests.workers import server_api, server_app, worker_settings
+from testkit.factories import RecordingQueue
+from testkit.workers import server_api, server_app, worker_settings
 from worker.server_api import ServerAPI
 from worker.settings import WorkerSettings
 

@@ -36,7 +36,7 @@ from server.models import Cause, State, Submission, Transition, utcnow
 from server.submissions.outbox import CeleryQueue
 from server.submissions.reports import report_running
 from server.submissions.work import claim_next
-from tests.factories import PASSWORD, embedded_database, fake_resolve_for
+from testkit.factories import PASSWORD, embedded_database, fake_resolve_for
 from tests.worker.celery_workers import (
     WORKER_KEYS,
     add_challenge,

@@ -40,8 +40,14 @@ from evaluator.results import Abort, EpisodeResult, EvaluationResult
 from evaluator.runner import ShardOutcome
 from evaluator.sources import LocalDirectory
 from evaluator.suite import Suite, SuiteError
+from testkit.k8s_double import (
+    POLICY_IMAGE,
+)
 from tests.evaluator.conftest import REPO, SCRIPTED, episode_records, tiny_suite
-from tests.worker.k8s_double import POLICY_IMAGE, TINY_SUITE, tiny_evaluation
+from tests.worker.k8s_specs import (
+    TINY_SUITE,
+    tiny_evaluation,
+)
 
 pytestmark = pytest.mark.long
 

@@ -15,8 +15,8 @@ from manieval.service import Service
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
+from testkit.factories import PASSWORD, SUITE, token_for
 from tests.evaluator.conftest import SCRIPTED
-from tests.factories import PASSWORD, SUITE, token_for
 from tests.server.registry_fixture import LocalRegistry, fixture_registry  # noqa: F401
 from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
     ContainerEngine,

@@ -16,15 +16,17 @@ from evaluator.plan import EvaluationPlan
 from evaluator.results import EpisodeResult, EvaluationResult
 from evaluator.runner import ShardOutcome
 from server.kit.settings import Settings
-from tests.worker.k8s_double import (
+from testkit.k8s_double import (
     NAMESPACE,
     ApiServerDouble,
     collect_logs,
     executor_for,
-    make_spec,
     running_apiserver,
 )
-from tests.workers import worker_settings
+from testkit.workers import worker_settings
+from tests.worker.k8s_specs import (
+    make_spec,
+)
 from worker.kubernetes.client import (
     Backoff,
     JobConflict,

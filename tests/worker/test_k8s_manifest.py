@@ -19,8 +19,12 @@ from evaluator.job import ENDPOINT_DIR, JOB_SPEC_ENV, JOB_SPEC_FILE_ENV, SHARDS_
 from internal_api.schemas import Assignment
 from manieval_sdk.serve import ENDPOINT_ENV
 from server.kit.settings import Settings
-from tests.worker.k8s_double import TINY_SUITE, make_spec, tiny_evaluation
-from tests.workers import worker_settings
+from testkit.workers import worker_settings
+from tests.worker.k8s_specs import (
+    TINY_SUITE,
+    make_spec,
+    tiny_evaluation,
+)
 from worker.containers import ContainerLimits, container_config
 from worker.kubernetes.manifest import (
     GPU_RESOURCE,

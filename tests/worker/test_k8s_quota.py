@@ -6,7 +6,9 @@ from decimal import Decimal
 
 import pytest
 
-from tests.worker.k8s_double import make_spec
+from tests.worker.k8s_specs import (
+    make_spec,
+)
 from worker.kubernetes.manifest import build_job
 from worker.kubernetes.quota import Quota, demand, never_fits, quota_of, shortfall
 

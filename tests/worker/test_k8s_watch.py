@@ -12,13 +12,15 @@ from typing import Any
 
 import pytest
 
-from tests.worker.k8s_double import (
+from testkit.k8s_double import (
     NAMESPACE,
     ApiServerDouble,
     collect_logs,
     executor_for,
-    make_spec,
     running_apiserver,
+)
+from tests.worker.k8s_specs import (
+    make_spec,
 )
 from worker.kubernetes.informer import ClusterWatch
 from worker.kubernetes.manifest import build_job

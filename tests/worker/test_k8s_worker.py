@@ -35,16 +35,18 @@ from server.challenges.service import ChallengeOptions, load_challenge, suite_of
 from server.kit.settings import Settings
 from server.models import Cause, Submission, Transition, utcnow
 from server.submissions.service import cancel
-from tests.evaluator.conftest import REPO, SCRIPTED, episode_records
-from tests.factories import SUITE, make_challenge, make_user, queue_submission
-from tests.worker.k8s_double import (
+from testkit.factories import SUITE, make_challenge, make_user, queue_submission
+from testkit.k8s_double import (
     EVALUATOR_IMAGE,
     NAMESPACE,
     ApiServerDouble,
-    make_spec,
     running_apiserver,
 )
-from tests.workers import worker_settings
+from testkit.workers import worker_settings
+from tests.evaluator.conftest import REPO, SCRIPTED, episode_records
+from tests.worker.k8s_specs import (
+    make_spec,
+)
 from worker.kubernetes import watch as watch_module
 from worker.kubernetes.informer import running_watch
 from worker.kubernetes.manifest import build_job, job_name

@@ -35,7 +35,7 @@ from manieval.service import Service
 from server.kit.settings import Settings
 from server.models import State, Submission, Transition, utcnow
 from server.submissions.work import assignment
-from tests.factories import PASSWORD, embedded_database
+from testkit.factories import PASSWORD, embedded_database
 from tests.private_postgres import PrivatePostgres
 from tests.worker.celery_workers import add_challenge, celery_worker, wait_ready, worker_environment
 from tests.worker.redis_server import Redis, free_port

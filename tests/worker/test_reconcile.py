@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from internal_api.schemas import AttemptRef, State
 from server.models import Submission, utcnow
-from tests.factories import RecordingQueue, make_challenge, make_user, queue_submission
+from testkit.factories import RecordingQueue, make_challenge, make_user, queue_submission
 from worker.reconcile import reconcile_pass
 from worker.server_api import ServerAPI
 from worker.settings import WorkerSettings

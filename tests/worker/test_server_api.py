@@ -143,7 +143,7 @@ def test_an_unreadable_spool_file_is_set_aside(tmp_path: Path) -> None:
 def test_a_final_report_with_its_result_document_is_spooled_and_sent_whole(
     tmp_path: Path,
 ) -> None:
-    from tests.factories import result_doc
+    from testkit.factories import result_doc
 
     report = FinalReport(state=State.SUCCEEDED, reason="score 0.500", result=result_doc([True]))
     seen: list[httpx.Request] = []

@@ -14,9 +14,15 @@ import pytest
 from evaluator.job import VIDEO_DIR_ENV, EvaluationJob, ExternalPolicy, result_from_logs, run_job
 from internal_api.schemas import Assignment
 from server.kit.settings import Settings
-from tests.worker.k8s_double import POLICY_IMAGE, make_spec, tiny_evaluation
+from testkit.k8s_double import (
+    POLICY_IMAGE,
+)
+from testkit.workers import worker_settings
+from tests.worker.k8s_specs import (
+    make_spec,
+    tiny_evaluation,
+)
 from tests.worker.test_evaluate_job import printed, start_policy
-from tests.workers import worker_settings
 from worker.kubernetes.manifest import VIDEO_MOUNT, build_job
 from worker.kubernetes.spec import job_spec
 

@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.app import create_app
 from server.kit.settings import Settings
 from server.submissions.outbox import WorkQueue
-from tests.factories import RecordingQueue, fake_resolve_for
+from testkit.factories import RecordingQueue, fake_resolve_for
 from worker.server_api import ServerAPI, Spool
 from worker.settings import WorkerSettings
 

@@ -29,7 +29,7 @@ from server.models import Challenge, Submission, User
 from server.submissions.images import image_resolver
 from server.submissions.service import Resolved, Resolver, submit
 
-SUITE = Path(__file__).resolve().parent / "server" / "server_suite.yaml"
+SUITE = Path(__file__).resolve().parent / "server_suite.yaml"
 PASSWORD = "correct horse battery staple"
 
 

@@ -46,23 +46,20 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from pathlib import Path
 from typing import Any, Concatenate, ParamSpec, TypeVar
 from urllib.parse import parse_qs, urlsplit
 
 import kubernetes_validate
 from kubernetes.client import ApiClient, Configuration
 
-from evaluator.job import EvaluationJob
 from worker.kubernetes.client import Backoff, KubernetesExecutor, no_client_retries
-from worker.kubernetes.manifest import EVALUATOR, INDEX_LABEL, JobSpec, Resources, job_name
+from worker.kubernetes.manifest import EVALUATOR, INDEX_LABEL, job_name
 
 NAMESPACE = "manieval-eval"
 SCHEMA_VERSION = "1.30"
 DIGEST = "sha256:" + "ab" * 32
 POLICY_IMAGE = f"127.0.0.1:5000/alice/policy@{DIGEST}"
 EVALUATOR_IMAGE = f"127.0.0.1:5000/manieval/evaluator@sha256:{'cd' * 32}"
-TINY_SUITE = Path(__file__).parents[1] / "evaluator" / "tiny_suite.yaml"
 
 Json = dict[str, Any]
 _JOBS = re.compile(r"^/apis/batch/v1/namespaces/([^/]+)/jobs(?:/([^/]+))?$")
@@ -105,49 +102,6 @@ class WatchRequest:
     store: str
     namespace: str
     query: dict[str, list[str]]
-
-
-def tiny_evaluation(*, seeds: Sequence[int] = (100, 101)) -> EvaluationJob:
-    """Two PickCube-v1 episodes of the tiny test suite, nominal condition only."""
-    return EvaluationJob(
-        suite_yaml=TINY_SUITE.read_text(),
-        phase="dev",
-        seeds={"PickCube-v1": tuple(seeds)},
-        conditions=("nominal",),
-    )
-
-
-def make_spec(
-    *,
-    submission_id: int = 7,
-    attempt: int = 1,
-    shards: int = 1,
-    gpu: bool = False,
-    runtime_class_name: str | None = None,
-    namespace: str = NAMESPACE,
-    policy_image: str = POLICY_IMAGE,
-    evaluation: EvaluationJob | None = None,
-    evaluator_resources: Resources | None = None,
-    **extra: Any,
-) -> JobSpec:
-    """A valid JobSpec with small resources; override what a test is about (`extra`: any
-    other JobSpec field, such as the node-pool ones)."""
-    return JobSpec(
-        submission_id=submission_id,
-        attempt=attempt,
-        namespace=namespace,
-        evaluator_image=EVALUATOR_IMAGE,
-        policy_image=policy_image,
-        evaluation=evaluation or tiny_evaluation(),
-        evaluator_resources=evaluator_resources or Resources("2", "4Gi", "2Gi"),
-        policy_resources=Resources("500m", "1Gi", "512Mi"),
-        gpu=gpu,
-        active_deadline_seconds=900,
-        ttl_seconds_after_finished=600,
-        runtime_class_name=runtime_class_name,
-        shards=shards,
-        **extra,
-    )
 
 
 @dataclass
