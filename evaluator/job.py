@@ -24,8 +24,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from evaluator.evaluation import build_result, installed_versions
-from evaluator.plan import EvaluationPlan, TaskRun
-from evaluator.results import Abort, EpisodeResult, EvaluationResult, SuiteRef, Versions, Video
+from evaluator.plan import EvaluationPlan, suite_plan, task_run
+from evaluator.results import Abort, EpisodeResult, EvaluationResult, Versions, Video
 from evaluator.runner import RunOptions, ShardOutcome, make_shards, run_shard
 from evaluator.suite import SEED_LIMIT, Suite, SuiteError
 
@@ -68,31 +68,14 @@ class EvaluationJob(BaseModel):
             if not seeds:
                 raise SuiteError(f"task {env_id!r} has no seeds")
         names = self.conditions or tuple(c.name for c in suite.conditions)
-        runs = tuple(
-            TaskRun(
-                env_id=task.env_id,
-                obs_mode=task.obs_mode,
-                control_mode=task.control_mode,
-                sim_backend=task.sim_backend,
-                max_episode_steps=task.max_episode_steps,
-                condition=suite.condition(name),
-                seeds=self.seeds[task.env_id],
-            )
+        runs = [
+            task_run(task, suite.condition(name), self.seeds[task.env_id])
             for name in names
             for task in suite.tasks
             if task.env_id in self.seeds
-        )
-        ref = SuiteRef(name=suite.name, version=suite.version, sha256=suite.sha256())
-        return EvaluationPlan(
-            suite=ref,
-            phase=self.phase,
-            limits=suite.limits,
-            runs=runs,
-            ignore_terminations=suite.ignore_terminations,
-            videos=suite.videos,
-            video_conditions=suite.video_conditions,
-            video_size=suite.video_size,
-            video_fps=suite.video_fps,
+        ]
+        return suite_plan(
+            suite, self.phase, runs, videos=suite.videos, video_conditions=suite.video_conditions
         )
 
     def canonical_json(self) -> str:

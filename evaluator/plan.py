@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from pydantic import BaseModel, ConfigDict, Field
 
 from evaluator.results import SuiteRef
-from evaluator.suite import Condition, Limits, Suite, SuiteError, phase_seeds
+from evaluator.suite import Condition, Limits, Suite, SuiteError, TaskConfig, phase_seeds
 
 
 class TaskRun(BaseModel):
@@ -85,31 +85,61 @@ def build_plan(
         [suite.condition(c) for c in conditions] if conditions else list(suite.conditions)
     )
     suite.phase(phase)
-    runs = []
-    for condition in selected_conditions:
-        for task in selected_tasks:
-            count = episodes if episodes is not None else task.episodes
-            seeds = phase_seeds(suite, phase, task.env_id, count, secret=secret)
-            runs.append(
-                TaskRun(
-                    env_id=task.env_id,
-                    obs_mode=task.obs_mode,
-                    control_mode=task.control_mode,
-                    sim_backend=task.sim_backend,
-                    max_episode_steps=task.max_episode_steps,
-                    condition=condition,
-                    seeds=tuple(seeds),
-                )
-            )
+    runs = [
+        task_run(
+            task,
+            condition,
+            phase_seeds(
+                suite,
+                phase,
+                task.env_id,
+                episodes if episodes is not None else task.episodes,
+                secret=secret,
+            ),
+        )
+        for condition in selected_conditions
+        for task in selected_tasks
+    ]
+    return suite_plan(
+        suite,
+        phase,
+        runs,
+        videos=max(recorded, 1) if record_video else recorded,
+        # Asked for on the command line: every condition, whatever the suite limits it to.
+        video_conditions=None if record_video else suite.video_conditions,
+    )
+
+
+def task_run(task: TaskConfig, condition: Condition, seeds: Sequence[int]) -> TaskRun:
+    """A suite's task under one of its conditions, on these seeds."""
+    return TaskRun(
+        env_id=task.env_id,
+        obs_mode=task.obs_mode,
+        control_mode=task.control_mode,
+        sim_backend=task.sim_backend,
+        max_episode_steps=task.max_episode_steps,
+        condition=condition,
+        seeds=tuple(seeds),
+    )
+
+
+def suite_plan(
+    suite: Suite,
+    phase: str,
+    runs: Sequence[TaskRun],
+    *,
+    videos: int,
+    video_conditions: tuple[str, ...] | None,
+) -> EvaluationPlan:
+    """The plan of these task runs of `suite`, with the suite's limits and settings."""
     return EvaluationPlan(
         suite=SuiteRef(name=suite.name, version=suite.version, sha256=suite.sha256()),
         phase=phase,
         limits=suite.limits,
         runs=tuple(runs),
         ignore_terminations=suite.ignore_terminations,
-        videos=max(recorded, 1) if record_video else recorded,
-        # Asked for on the command line: every condition, whatever the suite limits it to.
-        video_conditions=None if record_video else suite.video_conditions,
+        videos=videos,
+        video_conditions=video_conditions,
         video_size=suite.video_size,
         video_fps=suite.video_fps,
     )
