@@ -7,7 +7,15 @@ from collections.abc import Sequence
 from pydantic import BaseModel, ConfigDict, Field
 
 from evaluator.results import SuiteRef
-from evaluator.suite import Condition, Limits, Suite, SuiteError, phase_seeds
+from evaluator.suite import (
+    NO_CHUNKS,
+    ActionChunks,
+    Condition,
+    Limits,
+    Suite,
+    SuiteError,
+    phase_seeds,
+)
 
 
 class TaskRun(BaseModel):
@@ -34,6 +42,7 @@ class EvaluationPlan(BaseModel):
     limits: Limits
     runs: tuple[TaskRun, ...]
     ignore_terminations: bool = False
+    action_chunks: ActionChunks = NO_CHUNKS
     videos: int = Field(default=0, ge=0)
     """Episodes recorded per task run: those with an index below it (the first N)."""
     video_conditions: tuple[str, ...] | None = None
@@ -107,6 +116,7 @@ def build_plan(
         limits=suite.limits,
         runs=tuple(runs),
         ignore_terminations=suite.ignore_terminations,
+        action_chunks=suite.action_chunks,
         videos=max(recorded, 1) if record_video else recorded,
         # Asked for on the command line: every condition, whatever the suite limits it to.
         video_conditions=None if record_video else suite.video_conditions,
