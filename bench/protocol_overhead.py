@@ -1,16 +1,20 @@
 """Protocol overhead: the same policy and seeds, called in-process vs over the wire protocol.
 
-Prints steps/s of both and their ratio for state and rgb (128x128) observations. Each path
-keeps its own environment and the two take turns episode by episode (the same seed for both,
-in alternating order), so that what else the machine does hits both alike: a run of seconds
-on one path would meet another load than the other's. The ratio is of all the rounds' steps/s
-together, with the spread of the rounds' own ratios beside it, and what the protocol adds to
-each step in microseconds; then the floor under that on this machine, a bare round trip
-between two processes (bench/socket_round_trip.py). The last line is
-`protocol_state_ratio <ratio>` (the aim: 0.97 for state, 0.95 for rgb).
+Prints steps/s of both and their ratio for each kind of observation the protocol carries: state,
+rgb and rgbd at 128x128 (the tabletop tasks' camera), rgbd at 224x224 (through ManiSkill's
+`sensor_configs`), pointcloud, and state again with a policy that answers with chunks of 8
+actions (protocol 2). Each path keeps its own environment and the two take turns episode by
+episode (the same seed for both, in alternating order), so that what else the machine does hits
+both alike: a run of seconds on one path would meet another load than the other's. The ratio is
+of all the rounds' steps/s together, with the spread of the rounds' own ratios beside it, and
+what the protocol adds to each step in microseconds (per step: a chunk's call is shared by its
+steps); then the floor under that on this machine, a bare round trip between two processes
+(bench/socket_round_trip.py). One line `protocol_<row>_ratio <ratio>` per row follows, the last
+`protocol_state_ratio <ratio>` (the aims: 0.97 for state, 0.95 for camera observations, 0.99
+for chunks).
 
     .venv/bin/python bench/protocol_overhead.py [--rounds 9] [--episodes 6] [--steps 100]
-        [--rgb-episodes 4] [--rgb-steps 20]
+        [--rgb-episodes 4] [--rgb-steps 20] [--rows state,rgb,rgbd,rgbd224,pointcloud,chunks8]
 """
 
 from __future__ import annotations
@@ -19,65 +23,113 @@ import argparse
 import importlib.util
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from evaluator.channel import InProcessChannel, PolicyChannel, RemoteChannel  # noqa: E402
+from evaluator.conditions import ConditionRuntime  # noqa: E402
 from evaluator.endpoint import PolicyEndpoint  # noqa: E402
 from evaluator.episode import run_episode  # noqa: E402
 from evaluator.plan import EvaluationPlan, build_plan  # noqa: E402
-from evaluator.runner import RunOptions, open_task, task_spec  # noqa: E402
-from evaluator.sim import action_bounds, default_control_freq  # noqa: E402
+from evaluator.runner import task_spec  # noqa: E402
+from evaluator.sim import action_bounds, default_control_freq, make_env  # noqa: E402
 from evaluator.sources import LocalDirectory  # noqa: E402
-from evaluator.suite import load_suite  # noqa: E402
+from evaluator.suite import NO_CHUNKS, ActionChunks, Condition, load_suite  # noqa: E402
 
 POLICY_DIR = Path(__file__).parent / "zero_policy"
 
 
-def plan_for(obs_mode: str, episodes: int, steps: int) -> EvaluationPlan:
-    plan = build_plan(
-        load_suite("maniskill-core"),
-        "dev",
-        tasks=["PickCube-v1"],
-        conditions=["nominal"],
-        episodes=episodes,
-    )
-    run = plan.runs[0].model_copy(update={"obs_mode": obs_mode, "max_episode_steps": steps})
-    return plan.model_copy(update={"runs": (run,)})
+@dataclass(frozen=True)
+class Row:
+    """What one row measures: the observation mode, the camera's side (None: the task's own,
+    128 pixels), and the chunks the policy answers with."""
+
+    name: str
+    obs_mode: str
+    camera: int | None = None
+    chunks: ActionChunks = NO_CHUNKS
+    renders: bool = True  # camera frames at every step: slow, so fewer episodes and steps
+
+    def plan(self, args: argparse.Namespace) -> EvaluationPlan:
+        episodes, steps = (
+            (args.rgb_episodes, args.rgb_steps) if self.renders else (args.episodes, args.steps)
+        )
+        plan = build_plan(
+            load_suite("maniskill-core"),
+            "dev",
+            tasks=["PickCube-v1"],
+            conditions=["nominal"],
+            episodes=episodes,
+        )
+        run = plan.runs[0].model_copy(
+            update={"obs_mode": self.obs_mode, "max_episode_steps": steps}
+        )
+        return plan.model_copy(update={"runs": (run,), "action_chunks": self.chunks})
+
+
+ROWS = (
+    Row("state", "state_dict", renders=False),
+    Row("rgb", "rgb"),
+    Row("rgbd", "rgbd"),
+    Row("rgbd224", "rgbd", camera=224),
+    Row("pointcloud", "pointcloud"),
+    Row("chunks8", "state_dict", chunks=ActionChunks(max_length=8), renders=False),
+)
+
+
+class CameraRuntime(ConditionRuntime):
+    """A condition that also sets the side of the task's sensor cameras, in pixels."""
+
+    def __init__(self, condition: Condition, side: int) -> None:
+        super().__init__(condition)
+        self._side = side
+
+    def env_kwargs(self) -> dict[str, Any]:
+        camera = {"width": self._side, "height": self._side}
+        return {**super().env_kwargs(), "sensor_configs": camera}
 
 
 class PolicyPath:
     """One way of calling the policy, with its own environment."""
 
-    def __init__(self, plan: EvaluationPlan, channel: PolicyChannel) -> None:
+    def __init__(self, plan: EvaluationPlan, row: Row, channel: PolicyChannel) -> None:
         self.channel = channel
-        self.task = open_task(plan, 0, tuple(enumerate(plan.runs[0].seeds)), RunOptions())
         run = plan.runs[0]
-        self.step_limit = self.task.runtime.step_limit(
-            run.max_episode_steps, default_control_freq(self.task.env)
+        self.runtime = (
+            CameraRuntime(run.condition, row.camera)
+            if row.camera
+            else ConditionRuntime(run.condition)
         )
-        channel.start_task(task_spec(run, self.task.env, self.step_limit))
+        self.env = make_env(run, self.runtime)
+        self.step_limit = self.runtime.step_limit(
+            run.max_episode_steps, default_control_freq(self.env)
+        )
+        self.chunks = plan.action_chunks
+        channel.start_task(task_spec(run, self.env, self.step_limit, self.chunks))
         self.ignore_terminations = plan.ignore_terminations
 
     def episode(self, seed: int) -> tuple[int, float]:
         """Play one episode; its steps and wall time."""
         result = run_episode(
-            self.task.env,
+            self.env,
             self.channel,
-            self.task.runtime,
+            self.runtime,
             index=0,
             seed=seed,
             step_limit=self.step_limit,
-            bounds=action_bounds(self.task.env),
+            bounds=action_bounds(self.env),
             ignore_terminations=self.ignore_terminations,
+            chunks=self.chunks,
         )
         assert result.failure is None, result
         return result.steps, result.wall_time_s
 
     def close(self) -> None:
-        self.task.env.close()
+        self.env.close()
 
 
 def in_process_channel() -> InProcessChannel:
@@ -89,11 +141,9 @@ def in_process_channel() -> InProcessChannel:
     return InProcessChannel(module.Zero())
 
 
-def measure(
-    obs_mode: str, rounds: int, episodes: int, steps: int
-) -> tuple[float, float, list[float]]:
+def measure(row: Row, args: argparse.Namespace) -> tuple[float, float, list[float]]:
     """Steps/s in-process and over the protocol (all rounds together), and each round's ratio."""
-    plan = plan_for(obs_mode, episodes, steps)
+    plan = row.plan(args)
     endpoint = PolicyEndpoint(max_frame_bytes=plan.limits.max_action_frame_bytes)
     process = LocalDirectory(POLICY_DIR).launch(
         endpoint=endpoint.address, socket_dir=endpoint.socket_dir
@@ -102,15 +152,15 @@ def measure(
         endpoint.accept(timeout=60, alive=process.alive)
         endpoint.hello(timeout=60)
         paths = [
-            PolicyPath(plan, in_process_channel()),
-            PolicyPath(plan, RemoteChannel(endpoint, plan.limits)),
+            PolicyPath(plan, row, in_process_channel()),
+            PolicyPath(plan, row, RemoteChannel(endpoint, plan.limits)),
         ]
         try:
             for path in paths:  # warm both (first calls, first episode) before measuring
                 path.episode(plan.runs[0].seeds[0])
             totals = [[0, 0.0], [0, 0.0]]  # steps and seconds of each path, all rounds
             ratios = []
-            for round_no in range(rounds):
+            for round_no in range(args.rounds):
                 rates = [[0, 0.0], [0, 0.0]]
                 for n, seed in enumerate(plan.runs[0].seeds):
                     for which in (0, 1) if (round_no + n) % 2 == 0 else (1, 0):
@@ -137,20 +187,23 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--rgb-episodes", type=int, default=4)
     parser.add_argument("--rgb-steps", type=int, default=20)
+    names = [row.name for row in ROWS]
+    parser.add_argument("--rows", default=",".join(names), help="which rows, comma-separated")
     args = parser.parse_args()
-    head = f"{'obs_mode':<12}{'in-process steps/s':>20}{'protocol steps/s':>18}{'ratio':>8}"
-    print(head + f"{'us/step':>9}  rounds' ratios (min-max)")
+    wanted = args.rows.split(",")
+    if unknown := sorted(set(wanted) - set(names)):
+        parser.error(f"unknown rows {', '.join(unknown)} (there are: {', '.join(names)})")
+    head = f"{'row':<12}{'in-process steps/s':>20}{'protocol steps/s':>18}{'ratio':>8}"
+    print(head + f"{'us/step':>9}  rounds' ratios (min-max)", flush=True)
     figures = {}
-    for obs_mode, episodes, steps in (
-        ("state_dict", args.episodes, args.steps),
-        ("rgb", args.rgb_episodes, args.rgb_steps),
-    ):
-        local, remote, ratios = measure(obs_mode, args.rounds, episodes, steps)
-        figures[obs_mode] = ratio = remote / local
+    for row in (row for row in ROWS if row.name in wanted):
+        local, remote, ratios = measure(row, args)
+        figures[row.name] = ratio = remote / local
         overhead_us = (1 / remote - 1 / local) * 1e6
         print(
-            f"{obs_mode:<12}{local:>20.1f}{remote:>18.1f}{ratio:>8.3f}{overhead_us:>9.0f}"
-            f"  {min(ratios):.3f}-{max(ratios):.3f}"
+            f"{row.name:<12}{local:>20.1f}{remote:>18.1f}{ratio:>8.3f}{overhead_us:>9.0f}"
+            f"  {min(ratios):.3f}-{max(ratios):.3f}",
+            flush=True,
         )
     floor = subprocess.run(
         [sys.executable, str(Path(__file__).parent / "socket_round_trip.py")],
@@ -160,7 +213,8 @@ def main() -> None:
     )
     print("us/step: what the protocol adds to a step. The floor under it on this machine,")
     print(floor.stdout.splitlines()[0])
-    print(f"protocol_state_ratio {figures['state_dict']:.3f}")
+    for name in sorted(figures, key=lambda name: name == "state"):  # the state row's last
+        print(f"protocol_{name}_ratio {figures[name]:.3f}")
 
 
 if __name__ == "__main__":

@@ -10,12 +10,11 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-import numpy as np
-
 from evaluator.endpoint import PolicyEndpoint, PolicyRaised
 from evaluator.suite import Limits
-from manieval_sdk import Policy
-from manieval_sdk.serve import task_spec
+from manieval_sdk import Policy, TaskSpec
+from manieval_sdk.serve import action_reply, task_spec
+from manieval_sdk.wire import PROTOCOL_VERSION
 
 
 class PolicyChannel(Protocol):
@@ -30,9 +29,10 @@ class PolicyChannel(Protocol):
 
     def reset(self, obs: Any, info: dict[str, Any]) -> None: ...
 
-    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
-        """The policy's action for `obs`; `meanwhile` is the evaluator's own work, done while
-        the policy thinks where it thinks elsewhere, and never charged to the policy."""
+    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> dict[str, Any]:
+        """The policy's answer for `obs`: `action`, one action, or `actions`, a chunk of them
+        (unchecked); `meanwhile` is the evaluator's own work, done while the policy thinks
+        where it thinks elsewhere, and never charged to the policy."""
         ...
 
 
@@ -68,13 +68,13 @@ class RemoteChannel:
             timeout=self._limits.call_timeout_s,
         )
 
-    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
-        """One action; warm-up (JIT, lazy loading) is allowed the first-call timeout.
+    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> dict[str, Any]:
+        """One answer; warm-up (JIT, lazy loading) is allowed the first-call timeout.
         `meanwhile` runs once the observation is sent, while the policy's process thinks."""
         timeout = self._limits.call_timeout_s if self._warm else self._limits.first_call_timeout_s
-        action = self._endpoint.act(obs, timeout=timeout, meanwhile=meanwhile)
+        answer = self._endpoint.act(obs, timeout=timeout, meanwhile=meanwhile)
         self._warm = True
-        return action
+        return answer
 
 
 class InProcessChannel:
@@ -82,21 +82,26 @@ class InProcessChannel:
 
     def __init__(self, policy: Policy) -> None:
         self._policy = policy
+        self._spec: TaskSpec | None = None
         self.policy_time_s = 0.0
 
     def start_task(self, spec: dict[str, Any]) -> None:
         """Set the policy up for a task."""
-        self._guard(lambda: self._policy.setup(task_spec(spec)))
+        parsed = self._spec = task_spec(spec)
+        self._guard(lambda: self._policy.setup(parsed))
 
     def reset(self, obs: Any, info: dict[str, Any]) -> None:
         """Start an episode."""
         self._timed(lambda: self._policy.reset(obs, info))
 
-    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
-        """One action; `meanwhile` first, as the policy runs in this thread."""
+    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> dict[str, Any]:
+        """One answer, as the SDK would send it over the wire (protocol 2); `meanwhile` first,
+        as the policy runs in this thread."""
         meanwhile()
-        action = self._timed(lambda: self._policy.act(obs))
-        return np.asarray(action)
+        reply = self._timed(
+            lambda: action_reply(self._policy.act(obs), self._spec, protocol=PROTOCOL_VERSION)
+        )
+        return {name: value for name, value in reply.items() if name != "type"}
 
     def _timed(self, call: Any) -> Any:
         started = time.monotonic()

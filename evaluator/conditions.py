@@ -34,6 +34,14 @@ class ConditionRuntime:
         self._rng = np.random.default_rng(0)
         self._history: deque[Observation] = deque()
 
+    @property
+    def observes_every_step(self) -> bool:
+        """Whether every step's observation must pass through `observe`, also where the policy
+        is not asked (within a chunk): a delay's history and the noise's stream move on with
+        each control step, so what the policy sees at a step does not depend on whether it was
+        asked at the steps before."""
+        return isinstance(self._params, ActionDelay) or self._sigma > 0
+
     def env_kwargs(self) -> dict[str, Any]:
         """Extra keyword arguments for gym.make."""
         if isinstance(self._params, LowFreq):

@@ -25,6 +25,7 @@ from manieval_sdk.wire import (
     DEFAULT_MAX_FRAME_BYTES,
     HEADER,
     PROTOCOL_VERSION,
+    PROTOCOL_VERSIONS,
     PeerClosed,
     ProtocolError,
     encode_frame,
@@ -34,6 +35,8 @@ from manieval_sdk.wire import (
 )
 
 SOCKET_NAME = "policy.sock"
+CHUNKS_SINCE = 2  # the protocol version that brought action chunks
+ACTION_FIELDS = ("action", "actions")  # what an `action` reply may carry: one, or a chunk
 POLL_S = 0.1  # how often a wait for the policy looks whether the evaluation was asked to stop
 READ_AHEAD = 1 << 16  # bytes a read takes from the policy at most, beyond what it needs
 # msgpack raises these without a message; what they mean, for the reason the policy is shown.
@@ -85,6 +88,7 @@ class PolicyEndpoint:
         self.budget_s = budget_s
         self.policy_time_s = 0.0  # charged time so far: waiting for answers to reset and act
         self.should_stop: Callable[[], bool] = lambda: False  # polled while waiting: Stopped
+        self.protocol = PROTOCOL_VERSIONS[0]  # the version the policy chose at `hello`
 
     @property
     def address(self) -> str:
@@ -178,7 +182,8 @@ class PolicyEndpoint:
         return reply
 
     def hello(self, *, timeout: float) -> dict[str, Any]:
-        """Handshake: check the policy speaks our protocol version."""
+        """Handshake: offer our newest protocol version; the policy answers with the one to
+        speak, any version we know up to it (version 1 policies answer 1, whatever offered)."""
         try:
             reply = self.call(
                 {"type": "hello", "protocol": PROTOCOL_VERSION},
@@ -192,19 +197,26 @@ class PolicyEndpoint:
             ) from None
         spoken = reply.get("protocol")
         # The integer itself: True and 1.0 compare equal to 1 in Python, not on the wire.
-        if type(spoken) is not int or spoken != PROTOCOL_VERSION:
+        if type(spoken) is not int or spoken not in PROTOCOL_VERSIONS:
+            known = " or ".join(str(version) for version in PROTOCOL_VERSIONS)
             raise PolicyFailure(
                 "protocol_error",
-                f"the policy speaks protocol {spoken!r}, not {PROTOCOL_VERSION} (an integer)",
+                f"the policy speaks protocol {spoken!r}, not {known} (an integer)",
             )
+        self.protocol = spoken
         return reply
 
-    def act(self, obs: Any, *, timeout: float, meanwhile: Callable[[], None] | None = None) -> Any:
-        """Ask for an action; the caller validates its type, shape and values."""
+    def act(
+        self, obs: Any, *, timeout: float, meanwhile: Callable[[], None] | None = None
+    ) -> dict[str, Any]:
+        """Ask for an action: the answer's `action`, or under protocol 2 `actions` (a chunk),
+        whichever it has; the caller validates them. Protocol 1 knows no `actions`: like any
+        field it does not know, it is ignored."""
         reply = self.call(
             {"type": "act", "obs": obs}, expect="action", timeout=timeout, meanwhile=meanwhile
         )
-        return reply.get("action")
+        fields = ACTION_FIELDS if self.protocol >= CHUNKS_SINCE else ACTION_FIELDS[:1]
+        return {name: reply[name] for name in fields if name in reply}
 
     # The connection never blocks (see `accept`): each read or write is one system call when
     # the socket is ready, as it mostly is, and a poll with a short timeout when it is not.

@@ -7,7 +7,16 @@ from collections.abc import Sequence
 from pydantic import BaseModel, ConfigDict, Field
 
 from evaluator.results import SuiteRef
-from evaluator.suite import Condition, Limits, Suite, SuiteError, TaskConfig, phase_seeds
+from evaluator.suite import (
+    NO_CHUNKS,
+    ActionChunks,
+    Condition,
+    Limits,
+    Suite,
+    SuiteError,
+    TaskConfig,
+    phase_seeds,
+)
 
 
 class TaskRun(BaseModel):
@@ -34,6 +43,7 @@ class EvaluationPlan(BaseModel):
     limits: Limits
     runs: tuple[TaskRun, ...]
     ignore_terminations: bool = False
+    action_chunks: ActionChunks = NO_CHUNKS
     videos: int = Field(default=0, ge=0)
     """Episodes recorded per task run: those with an index below it (the first N)."""
     video_conditions: tuple[str, ...] | None = None
@@ -138,6 +148,7 @@ def suite_plan(
         limits=suite.limits,
         runs=tuple(runs),
         ignore_terminations=suite.ignore_terminations,
+        action_chunks=suite.action_chunks,
         videos=videos,
         video_conditions=video_conditions,
         video_size=suite.video_size,

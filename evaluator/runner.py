@@ -26,6 +26,7 @@ from evaluator.sim import (
     make_env,
 )
 from evaluator.sources import PolicySource, limit_reached
+from evaluator.suite import NO_CHUNKS, ActionChunks
 from evaluator.video import write_video
 
 EpisodeCallback = Callable[[int, EpisodeResult], None]
@@ -80,7 +81,9 @@ def make_shards(plan: EvaluationPlan, workers: int) -> list[Shard]:
     return [Shard(tuple(units)) for units in per_worker if units]
 
 
-def task_spec(run: TaskRun, env: Any, step_limit: int) -> dict[str, Any]:
+def task_spec(
+    run: TaskRun, env: Any, step_limit: int, chunks: ActionChunks = NO_CHUNKS
+) -> dict[str, Any]:
     """The `task` message's spec: what the policy may know about the task."""
     low, high = action_bounds(env)
     return {
@@ -91,6 +94,7 @@ def task_spec(run: TaskRun, env: Any, step_limit: int) -> dict[str, Any]:
         "max_episode_steps": step_limit,
         "action_space": {"low": low, "high": high},
         "observation_space": describe_space(env.unwrapped.single_observation_space),
+        "action_chunks": {"max_length": chunks.max_length, "execute": chunks.executed},
     }
 
 
@@ -173,7 +177,7 @@ def _run_task(
     stride = plan.frame_stride(control_freq(env))
     index, seed = episodes[0]  # where a PolicyFailure is charged
     try:
-        setup_error = _start_task(channel, task_spec(run, env, step_limit))
+        setup_error = _start_task(channel, task_spec(run, env, step_limit, plan.action_chunks))
         for index, seed in episodes:
             if should_stop():  # cancelled, or another shard aborted: the rest is not run
                 return
@@ -196,6 +200,7 @@ def _run_task(
                     step_limit=step_limit,
                     bounds=bounds,
                     ignore_terminations=plan.ignore_terminations,
+                    chunks=plan.action_chunks,
                     frames=frames,
                     frame_every=stride,
                     should_stop=should_stop,

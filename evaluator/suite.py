@@ -99,6 +99,33 @@ class Limits(_Strict):
     max_action_frame_bytes: int = Field(default=1 << 20, ge=1024)
 
 
+class ActionChunks(_Strict):
+    """How many actions a policy may answer one `act` with (protocol 2), and how many of them
+    the evaluator executes before it asks again. The default, 1, is one action per call."""
+
+    max_length: int = Field(default=1, ge=1, le=1024)
+    """The longest chunk the evaluator takes; a longer one fails the episode (invalid_action)."""
+    execute: int | None = Field(default=None, ge=1)
+    """Actions of each chunk executed before the policy is asked again (None: all of them)."""
+
+    @model_validator(mode="after")
+    def _execute_within_max_length(self) -> ActionChunks:
+        if self.execute is not None and self.execute > self.max_length:
+            raise ValueError(
+                f"action_chunks.execute ({self.execute}) exceeds max_length ({self.max_length})"
+            )
+        return self
+
+    @property
+    def executed(self) -> int:
+        """The most actions of one chunk that are executed: `execute`, or all a chunk can hold."""
+        return self.execute or self.max_length
+
+
+NO_CHUNKS = ActionChunks()
+"""One action per call: protocol 1's way, and every suite's unless it says otherwise."""
+
+
 class Suite(_Strict):
     """A benchmark: what to run, on which seeds, under which conditions."""
 
@@ -112,6 +139,9 @@ class Suite(_Strict):
     phases: dict[str, Phase] = Field(min_length=1)
     conditions: tuple[Condition, ...] = (Condition(name="nominal", params=Nominal()),)
     limits: Limits = Limits()
+    action_chunks: ActionChunks = NO_CHUNKS
+    """Whether a policy may answer with several actions at once (docs/protocol.md, "Action
+    chunks"); the default takes one action per call, as protocol 1 does."""
     ignore_terminations: bool = False
     """As ManiSkill's evaluation does: every episode runs to its step limit, whatever the task
     signals, so that both `success_once` and `success_at_end` are measured. False ends an
@@ -180,14 +210,14 @@ class Suite(_Strict):
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
         content = self.model_dump(mode="json", exclude={"shards", "title", *RECORDING})
         for name in _HASHED_WHEN_SET:  # suites that do not use a newer setting keep their hash
-            if content[name] == type(self).model_fields[name].default:
+            if getattr(self, name) == type(self).model_fields[name].default:
                 del content[name]
         canonical = json.dumps(content, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
 
 
 # Settings added after suites were first published: part of the hash only when not the default.
-_HASHED_WHEN_SET = ("ignore_terminations",)
+_HASHED_WHEN_SET = ("ignore_terminations", "action_chunks")
 RECORDING = ("videos", "video_conditions", "video_size", "video_fps")
 """The settings that say what is filmed and how: they change no result, so no hash."""
 

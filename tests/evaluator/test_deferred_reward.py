@@ -39,12 +39,12 @@ class SeededPolicy:
     def reset(self, obs: Any, info: dict[str, Any]) -> None:
         self._rng = np.random.default_rng(0)
 
-    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
+    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> dict[str, Any]:
         if self._runs_meanwhile:
             self.meanwhile_calls += 1
             meanwhile()
             meanwhile()  # a second call must not count the step twice
-        return self._rng.uniform(-1, 1, self._shape).astype(np.float32)
+        return {"action": self._rng.uniform(-1, 1, self._shape).astype(np.float32)}
 
 
 @pytest.fixture(scope="module")

@@ -18,6 +18,7 @@ from manieval_sdk.wire import encode_frame, recv_message
 
 READY = encode_frame({"type": "ready", "protocol": 1})
 ACTION = encode_frame({"type": "action", "action": [0.5]})
+ZERO = encode_frame({"type": "action", "action": [0.0]})
 
 
 class Peer:
@@ -27,6 +28,7 @@ class Peer:
     def __init__(self, endpoint: PolicyEndpoint, *chunks: bytes) -> None:
         self._address = endpoint.address
         self._chunks = chunks
+        self.hello: dict[str, object] | None = None  # what the evaluator sent first
         self.sent = threading.Event()  # every chunk is written
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -34,7 +36,7 @@ class Peer:
 
     def _run(self) -> None:
         with connect(self._address, timeout=10) as sock:
-            recv_message(sock)
+            self.hello = recv_message(sock)
             self.serve(sock)
 
     def serve(self, sock: socket.socket) -> None:
@@ -57,25 +59,32 @@ def endpoint() -> Iterator[PolicyEndpoint]:
     endpoint.close()
 
 
-def handshake(endpoint: PolicyEndpoint, reply: bytes) -> None:
+def handshake(endpoint: PolicyEndpoint, reply: bytes) -> Peer:
     peer = Peer(endpoint, reply)
     try:
         endpoint.accept(timeout=10, alive=lambda: True)
         endpoint.hello(timeout=10)
     finally:
         peer.stop()
+    return peer
 
 
 def frame(payload: bytes) -> bytes:
     return struct.pack(">I", len(payload)) + payload
 
 
-def test_the_integer_1_completes_the_handshake(endpoint: PolicyEndpoint):
-    handshake(endpoint, encode_frame({"type": "ready", "protocol": 1}))
+@pytest.mark.parametrize("version", [1, 2])
+def test_the_policy_chooses_version_1_or_2_from_the_offer_of_2(
+    endpoint: PolicyEndpoint, version: int
+):
+    assert endpoint.protocol == 1  # until a policy says otherwise
+    peer = handshake(endpoint, encode_frame({"type": "ready", "protocol": version}))
+    assert peer.hello == {"type": "hello", "protocol": 2}
+    assert endpoint.protocol == version
 
 
-@pytest.mark.parametrize("version", [True, 1.0, "1", None, 2])
-def test_a_protocol_version_other_than_the_integer_1_is_refused(
+@pytest.mark.parametrize("version", [True, 1.0, 2.0, "1", None, 0, 3])
+def test_a_protocol_version_other_than_the_integers_1_and_2_is_refused(
     endpoint: PolicyEndpoint, version: object
 ):
     with pytest.raises(PolicyFailure, match="the policy speaks protocol") as failed:
@@ -126,17 +135,20 @@ class Answering(Peer):
     """A policy that completes the handshake, then answers each `act` with an action: at once,
     or once `go` is set."""
 
-    def __init__(self, endpoint: PolicyEndpoint) -> None:
+    def __init__(
+        self, endpoint: PolicyEndpoint, *, ready: bytes = READY, action: bytes = ZERO
+    ) -> None:
         self.answered = threading.Event()
         self.go = threading.Event()
         self.go.set()
+        self._ready, self._action = ready, action
         super().__init__(endpoint)
 
     def serve(self, sock: socket.socket) -> None:
-        sock.sendall(READY)
+        sock.sendall(self._ready)
         while recv_message(sock)["type"] == "act":
             self.go.wait(60)
-            sock.sendall(encode_frame({"type": "action", "action": [0.0]}))
+            sock.sendall(self._action)
             self.answered.set()
 
 
@@ -163,7 +175,7 @@ def test_a_policy_still_at_work_when_the_evaluators_own_work_ends_is_charged_it_
         time.sleep(0.5)
         threading.Timer(0.2, answering.go.set).start()
 
-    assert endpoint.act({"x": 1}, timeout=60, meanwhile=meanwhile) == [0.0]
+    assert endpoint.act({"x": 1}, timeout=60, meanwhile=meanwhile) == {"action": [0.0]}
     assert endpoint.policy_time_s - charged_before >= 0.5 + 0.2
 
 
@@ -179,7 +191,7 @@ def test_the_evaluators_own_work_during_a_call_is_neither_charged_nor_timed_out(
         time.sleep(timeout + 0.5)  # our own work, longer than the call's timeout
         ran.append(True)
 
-    assert endpoint.act({"x": 1}, timeout=timeout, meanwhile=meanwhile) == [0.0]
+    assert endpoint.act({"x": 1}, timeout=timeout, meanwhile=meanwhile) == {"action": [0.0]}
     assert ran == [True]
     assert endpoint.policy_time_s - charged_before < timeout
 
@@ -222,4 +234,23 @@ def test_a_policy_that_stops_reading_cannot_hold_a_call_past_its_timeout(
             endpoint.act(big, timeout=1.0)
         assert failed.value.kind == "policy_timeout"
     finally:
+        peer.stop()
+
+
+@pytest.mark.parametrize(
+    ("version", "fields"), [(1, {"action": [0.0]}), (2, {"action": [0.0], "actions": [[1.0]]})]
+)
+def test_an_actions_field_is_a_chunk_under_protocol_2_and_ignored_under_1(
+    endpoint: PolicyEndpoint, version: int, fields: dict[str, object]
+):
+    both = encode_frame({"type": "action", "action": [0.0], "actions": [[1.0]], "why": "-"})
+    peer = Answering(
+        endpoint, ready=encode_frame({"type": "ready", "protocol": version}), action=both
+    )
+    try:
+        endpoint.accept(timeout=10, alive=lambda: True)
+        endpoint.hello(timeout=10)
+        assert endpoint.act({"x": 1}, timeout=30) == fields
+    finally:
+        endpoint.close()
         peer.stop()

@@ -70,8 +70,8 @@ class StillPolicy:
     def reset(self, obs: Any, info: dict[str, Any]) -> None:
         pass
 
-    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
-        return np.zeros(2, dtype=np.float32)
+    def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> dict[str, Any]:
+        return {"action": np.zeros(2, dtype=np.float32)}
 
 
 def nominal() -> ConditionRuntime:
@@ -117,7 +117,7 @@ def test_a_policy_that_raises_is_filmed_to_the_state_it_left():
     class RaisesAtStep5(StillPolicy):
         calls = 0
 
-        def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> Any:
+        def act(self, obs: Any, *, meanwhile: Callable[[], None] = lambda: None) -> dict[str, Any]:
             self.calls += 1
             if self.calls == 6:
                 raise PolicyRaised("ValueError: no")

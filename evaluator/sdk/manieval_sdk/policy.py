@@ -13,6 +13,20 @@ Observation = Any
 
 
 @dataclass(frozen=True)
+class ActionChunks:
+    """How many actions `act` may return at once for this task, and how many are executed.
+
+    `execute` actions of a chunk are executed before `act` is called again (fewer if the chunk
+    is shorter, or the episode ends); 1 (the default, and what an evaluator of protocol 1 means)
+    asks for an action at every step. `max_length` is the longest chunk the evaluator takes on
+    the wire; the SDK sends only the first `execute` actions, which never exceeds it.
+    """
+
+    max_length: int = 1
+    execute: int = 1
+
+
+@dataclass(frozen=True)
 class TaskSpec:
     """What the evaluator tells the policy about the task it is about to be evaluated on."""
 
@@ -25,6 +39,7 @@ class TaskSpec:
     action_high: np.ndarray
     observation_space: dict[str, Any] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
+    action_chunks: ActionChunks = field(default_factory=ActionChunks)
 
     @property
     def action_shape(self) -> tuple[int, ...]:
@@ -36,7 +51,8 @@ class Policy(ABC):
     """Subclass and override `act` (and `setup`/`reset` when the policy keeps state).
 
     The evaluator calls `setup` once per task, `reset` at the start of every episode and `act`
-    once per control step. Observations carry no batch dimension.
+    once per control step, or once per chunk of steps when `act` returns a chunk of actions and
+    the task takes chunks (`spec.action_chunks`). Observations carry no batch dimension.
 
     Randomness is reproducible by default: before every `reset`, `serve` sets `self.rng` to a
     generator seeded from the episode's first observation, and seeds Python's `random`, numpy's
@@ -60,4 +76,11 @@ class Policy(ABC):
 
     @abstractmethod
     def act(self, obs: Observation) -> np.ndarray:
-        """Return the action for this observation, shaped like `spec.action_low`."""
+        """Return the action for this observation, shaped like `spec.action_low`; or a chunk of
+        H actions, shaped `(H, *spec.action_shape)`, the first for this observation's step.
+
+        Of a chunk the first `spec.action_chunks.execute` actions are executed, one control step
+        each, without calling `act` in between; the rest are dropped. Where the task takes no
+        chunks (`execute` is 1) only the first one is, and `act` is called again at the next
+        step. Actions are never held back and played later.
+        """

@@ -19,7 +19,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # the newest version this side speaks
+PROTOCOL_VERSIONS = (1, 2)  # 2 is 1 plus action chunks; negotiated at `hello`
 EXT_NDARRAY = 1
 HEADER = struct.Struct(">I")
 MAX_NDIM = 8
