@@ -7,7 +7,15 @@ from collections.abc import Sequence
 from pydantic import BaseModel, ConfigDict, Field
 
 from evaluator.results import SuiteRef
-from evaluator.suite import Condition, Limits, Suite, SuiteError, TaskConfig, phase_seeds
+from evaluator.suite import (
+    Condition,
+    Limits,
+    PolicyResources,
+    Suite,
+    SuiteError,
+    TaskConfig,
+    phase_seeds,
+)
 
 
 class TaskRun(BaseModel):
@@ -42,6 +50,8 @@ class EvaluationPlan(BaseModel):
     """Frames' side in pixels (None: the task's render camera's own size)."""
     video_fps: int | None = None
     """At most this many frames per second of control time (None: a frame after every step)."""
+    policy: PolicyResources = PolicyResources()
+    """What the policy's container is given (the suite's `policy`: GPUs)."""
 
     def records(self, run: TaskRun, index: int) -> bool:
         """Whether episode `index` of task run `run` is recorded as a video."""
@@ -142,4 +152,5 @@ def suite_plan(
         video_conditions=video_conditions,
         video_size=suite.video_size,
         video_fps=suite.video_fps,
+        policy=suite.policy,
     )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import os
 import random
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import pytest
 from docker.errors import ImageNotFound
-from docker.types import Mount
+from docker.types import DeviceRequest, Mount
 
 from evaluator.endpoint import PolicyEndpoint
 from evaluator.evaluation import evaluate
@@ -33,6 +34,7 @@ from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
     fixture_policy_images,
     policy_containers,
 )
+from tests.worker.docker_double import docker_double
 from worker.containers import (
     POLICY_UID,
     SOCKET_MOUNT,
@@ -44,6 +46,7 @@ from worker.containers import (
     container_config,
     container_endpoint,
     exit_detail,
+    gpu_refusal,
     pinned_reference,
     remove_leftovers,
     share_socket,
@@ -149,6 +152,45 @@ def test_container_config_locks_the_policy_down() -> None:
     assert config["log_config"]["Config"] == {"max-size": "1m"}
 
 
+def test_a_gpu_is_requested_as_docker_run_gpus_does_and_only_when_asked_for() -> None:
+    def config(gpus: int) -> dict[str, object]:
+        return container_config(
+            image=f"registry.example/team/policy@{DIGEST}",
+            name="manieval-7-2-abcd",
+            labels={},
+            limits=LIMITS,
+            socket_dir=Path("/tmp/manieval-x"),
+            endpoint=f"unix://{SOCKET_MOUNT}/policy.sock",
+            gpus=gpus,
+        )
+
+    assert "device_requests" not in config(0)
+    assert config(2)["device_requests"] == [DeviceRequest(count=2, capabilities=[["gpu"]])]
+    assert {k: v for k, v in config(2).items() if k != "device_requests"} == config(0)
+
+
+def test_the_engine_receives_the_gpu_request_on_the_policy_container() -> None:
+    endpoint = PolicyEndpoint()
+    with docker_double() as (url, recorded), closing(endpoint):
+        image = f"127.0.0.1:5000/a/b@{DIGEST}"
+        source = ContainerImage(image, submission=1, attempt=1, engine_url=url, gpus=1)
+        process = source.launch(endpoint=endpoint.address, socket_dir=endpoint.socket_dir)
+        process.stop()
+    host = recorded.created()["HostConfig"]
+    assert host["DeviceRequests"] == [
+        {"Driver": "", "Count": 1, "DeviceIDs": [], "Capabilities": [["gpu"]], "Options": {}}
+    ]
+    assert host["NetworkMode"] == "none"  # the rest of the sandbox, unchanged
+    assert host["ReadonlyRootfs"] is True
+
+
+def test_an_engine_that_would_drop_a_gpu_request_is_named() -> None:
+    docker = [{"Name": "Engine", "Version": "24.0.7"}]
+    podman = [{"Name": "Podman Engine", "Version": "4.3.1"}, {"Name": "Conmon"}]
+    assert gpu_refusal(docker) is None
+    assert "Podman, whose Docker API ignores GPU requests" in str(gpu_refusal(podman))
+
+
 def test_only_images_pinned_by_digest_are_accepted() -> None:
     assert pinned_reference(f"127.0.0.1:5000/a/b@{DIGEST}") == f"127.0.0.1:5000/a/b@{DIGEST}"
     for reference in ("a/b:latest", "a/b", f"a/b@sha256:{'ab' * 31}", f"a/b:{DIGEST}"):
@@ -233,6 +275,20 @@ def test_image_is_pulled_from_the_registry_by_digest(
             client.images.get(image)
         container_source(image, next(attempts), container_engine).pull()
         assert image in client.images.get(image).attrs["RepoDigests"]
+
+
+def test_podman_is_refused_a_gpu_policy_rather_than_run_it_without_the_gpu(
+    container_engine: ContainerEngine, attempts: Iterator[tuple[int, int]]
+) -> None:
+    ids = next(attempts)
+    source = dataclasses.replace(
+        container_source(f"127.0.0.1:5000/a/b@{DIGEST}", ids, container_engine), gpus=1
+    )
+    with pytest.raises(ExecutorError, match="Podman, whose Docker API ignores GPU requests"):
+        source.pull()
+    with closing(PolicyEndpoint()) as endpoint, pytest.raises(ExecutorError, match="Podman"):
+        source.launch(endpoint=endpoint.address, socket_dir=endpoint.socket_dir)
+    assert policy_containers(container_engine, submission=ids[0], attempt=ids[1]) == []
 
 
 @pytest.mark.sim
