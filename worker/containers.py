@@ -27,7 +27,7 @@ from docker.errors import DockerException, ImageNotFound, NotFound
 from docker.models.containers import Container
 from docker.types import DeviceRequest, LogConfig, Mount, Ulimit
 
-from evaluator.sources import LOG_TAIL_BYTES
+from evaluator.sources import LOG_TAIL_BYTES, OutputEcho, OutputSink
 from internal_api.schemas import IMAGE_DIGEST, PINNED_IMAGE
 
 log = logging.getLogger(__name__)
@@ -315,15 +315,26 @@ class ContainerImage:
             _remove(container)
             client.close()
             raise ExecutorError(f"cannot start {config['name']}: {exc}") from exc
-        return ContainerProcess(client, container, memory_mib=self.limits.memory_mib)
+        return ContainerProcess(
+            client, container, memory_mib=self.limits.memory_mib, engine_url=self.engine_url
+        )
 
 
 class ContainerProcess:
     """A running policy container: its state, output and removal through the engine's API."""
 
-    def __init__(self, client: DockerClient, container: Container, *, memory_mib: int) -> None:
+    def __init__(
+        self,
+        client: DockerClient,
+        container: Container,
+        *,
+        memory_mib: int,
+        engine_url: str = DEFAULT_ENGINE_URL,
+    ) -> None:
         self._client = client
         self._container = container
+        self._engine_url = engine_url
+        self._echo: threading.Thread | None = None
         self.name = str(container.name)
         self._memory_mib = memory_mib
         self._lock = threading.Lock()
@@ -351,6 +362,29 @@ class ContainerProcess:
         """The last bytes of the policy's stdout and stderr (kept after the container is gone)."""
         return self._tail if self._tail is not None else self._read_logs()
 
+    def echo(self, sink: OutputSink) -> None:
+        """Pass the container's output on to `sink` as it comes, from its start (see
+        `evaluator.sources.EchoingProcess`), until the container ends."""
+        self._echo = threading.Thread(
+            target=self._follow, args=(OutputEcho(sink),), daemon=True, name="policy-output"
+        )
+        self._echo.start()
+
+    def _follow(self, echo: OutputEcho) -> None:
+        # A client of its own without a read timeout (the SDK passes None on to requests, its
+        # stubs say int): a policy may print nothing for longer than any request may take.
+        url = self._engine_url
+        client = DockerClient(base_url=url, version=_api_versions.get(url), timeout=None)  # type: ignore[arg-type]
+        try:
+            container = client.containers.get(self.name)
+            for chunk in container.logs(stdout=True, stderr=True, stream=True, follow=True):
+                echo.feed(chunk)
+        except Exception as exc:  # the engine's, requests' or urllib3's: the stream broke off
+            echo.feed(f"\n[the policy's output could not be followed: {exc}]\n".encode())
+        finally:
+            echo.close()
+            client.close()
+
     def stop(self) -> None:
         """Give the policy a moment to exit, keep its log tail, then kill and remove it."""
         if self._stopped:
@@ -369,6 +403,8 @@ class ContainerProcess:
             )
         self._tail = self._read_logs()
         _remove(self._container)
+        if self._echo is not None:
+            self._echo.join(STOP_GRACE_S)  # the stream ends with the container
         with self._lock:
             if self._state is None:
                 self._state = {}  # killed by us: no exit of the policy's own

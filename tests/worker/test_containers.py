@@ -277,6 +277,25 @@ def test_image_is_pulled_from_the_registry_by_digest(
         assert image in client.images.get(image).attrs["RepoDigests"]
 
 
+@pytest.mark.sim
+def test_the_containers_output_is_passed_on_as_it_comes_to_whoever_asks(
+    container_engine: ContainerEngine,
+    policy_images: PolicyImages,
+    attempts: Iterator[tuple[int, int]],
+) -> None:
+    body = 'print("loading weights", flush=True)\nsys.exit("no weights here")\n'
+    image = policy_images.publish("chatty-crasher", HEADER + body)
+    pieces: list[tuple[int, bytes]] = []
+    result = evaluate(
+        hostile_plan(),
+        container_source(image, next(attempts), container_engine),
+        on_output=lambda shard, data: pieces.append((shard, data)),
+    )
+    assert_aborted(result, "policy_crashed", "exited before connecting")
+    assert {shard for shard, _ in pieces} == {0}
+    assert b"".join(data for _, data in pieces) == b"loading weights\nno weights here\n"
+
+
 def test_podman_is_refused_a_gpu_policy_rather_than_run_it_without_the_gpu(
     container_engine: ContainerEngine, attempts: Iterator[tuple[int, int]]
 ) -> None:
