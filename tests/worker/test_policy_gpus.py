@@ -8,6 +8,7 @@ from pathlib import Path
 from sqlalchemy.orm import Session, sessionmaker
 
 from internal_api.schemas import State
+from manieval.service import embedded_worker_settings
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.settings import Settings
 from server.models import Submission
@@ -51,3 +52,9 @@ def test_the_docker_executor_is_handed_the_suites_gpus(settings: Settings) -> No
     assert isinstance(source, ContainerImage)
     assert source.gpus == 1
     assert policy_source(PINNED, wsettings, submission_id=3, attempt=1).gpus == 0  # type: ignore[union-attr]
+
+
+def test_the_embedded_worker_gives_what_its_server_promises(settings: Settings) -> None:
+    promising = settings.model_copy(update={"policy_gpus": 1})
+    assert embedded_worker_settings(promising, port=8000).policy_gpus == 1
+    assert embedded_worker_settings(settings, port=8000).policy_gpus == 0
