@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import platform
 from collections.abc import Callable
 from datetime import UTC, datetime
@@ -21,6 +22,7 @@ from evaluator.results import (
 )
 from evaluator.runner import (
     EpisodeCallback,
+    OutputCallback,
     RunOptions,
     ShardOutcome,
     failed_episode,
@@ -39,6 +41,7 @@ def evaluate(
     video_dir: Path | None = None,
     on_episode: EpisodeCallback | None = None,
     should_stop: Callable[[], bool] = lambda: False,
+    on_output: OutputCallback | None = None,
 ) -> EvaluationResult:
     """Run every episode of `plan` against the policy from `source` and score it.
 
@@ -49,6 +52,9 @@ def evaluate(
     One worker runs here, in this process, unless `warm`; otherwise the shards run in a warm
     pool of `workers` evaluator processes (`evaluator.pool`), kept for the next evaluation.
     A daemonic process (a Celery prefork child) may start none, and runs one worker here.
+
+    `on_output`, if given, gets the policy processes' own output as it comes, by shard (when
+    their launcher can pass it on: local processes and containers).
     """
     started = datetime.now(UTC)
     options = RunOptions(video_dir=video_dir)
@@ -65,10 +71,13 @@ def evaluate(
                 options=options,
                 on_episode=callback,
                 should_stop=should_stop,
+                on_output=None if on_output is None else functools.partial(on_output, 0),
             )
         ]
     else:
-        outcomes = run_warm(workers, plan, source, shards, options, callback, should_stop)
+        outcomes = run_warm(
+            workers, plan, source, shards, options, callback, should_stop, on_output
+        )
     return build_result(plan, source.describe(), outcomes, started=started)
 
 

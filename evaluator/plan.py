@@ -12,6 +12,7 @@ from evaluator.suite import (
     ActionChunks,
     Condition,
     Limits,
+    PolicyResources,
     Suite,
     SuiteError,
     TaskConfig,
@@ -52,6 +53,8 @@ class EvaluationPlan(BaseModel):
     """Frames' side in pixels (None: the task's render camera's own size)."""
     video_fps: int | None = None
     """At most this many frames per second of control time (None: a frame after every step)."""
+    policy: PolicyResources = PolicyResources()
+    """What the policy's container is given (the suite's `policy`: GPUs)."""
 
     def records(self, run: TaskRun, index: int) -> bool:
         """Whether episode `index` of task run `run` is recorded as a video."""
@@ -153,4 +156,5 @@ def suite_plan(
         video_conditions=video_conditions,
         video_size=suite.video_size,
         video_fps=suite.video_fps,
+        policy=suite.policy,
     )

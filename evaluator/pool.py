@@ -36,7 +36,14 @@ from typing import Any
 
 from evaluator.plan import EvaluationPlan
 from evaluator.results import EpisodeResult
-from evaluator.runner import EpisodeCallback, RunOptions, Shard, ShardOutcome, run_shard
+from evaluator.runner import (
+    EpisodeCallback,
+    OutputCallback,
+    RunOptions,
+    Shard,
+    ShardOutcome,
+    run_shard,
+)
 from evaluator.sources import PolicySource
 
 EVENT_WAIT_S = 0.1
@@ -108,23 +115,28 @@ class WarmPool:
         options: RunOptions,
         on_episode: EpisodeCallback,
         should_stop: Callable[[], bool],
+        on_output: OutputCallback | None = None,
     ) -> list[ShardOutcome]:
-        """Run the shards, one per process, reporting episodes as they end; their outcomes in
-        shard order. Any failure here leaves the pool unusable (its shards may still run)."""
+        """Run the shards, one per process, reporting episodes as they end (and the policies'
+        output, if asked); their outcomes in shard order. Any failure here leaves the pool
+        unusable (its shards may still run)."""
         if len(shards) > self.processes:
             raise ValueError(f"{len(shards)} shards for {self.processes} processes")
         run_id = next(self._runs)
         self._stop.clear()
         self.usable = False  # until this run has ended cleanly
         try:
+            echo = on_output is not None
             futures = [
-                self._executor.submit(_shard_in_process, run_id, plan, source, shard, options)
-                for shard in shards
+                self._executor.submit(
+                    _shard_in_process, run_id, plan, source, shard, options, index, echo
+                )
+                for index, shard in enumerate(shards)
             ]
         except BrokenProcessPool as exc:
             raise PoolBroken(f"an evaluator process ended while idle: {exc}") from exc
         try:
-            self._pump(run_id, futures, on_episode, should_stop)
+            self._pump(run_id, futures, on_episode, should_stop, on_output)
             outcomes = [future.result() for future in futures]
         except BrokenProcessPool as exc:
             self._stop.set()
@@ -141,6 +153,7 @@ class WarmPool:
         futures: list[Future[ShardOutcome]],
         on_episode: EpisodeCallback,
         should_stop: Callable[[], bool],
+        on_output: OutputCallback | None,
     ) -> None:
         ended = 0  # shards whose last event arrived: results and events take different pipes
         all_done_at: float | None = None
@@ -170,6 +183,8 @@ class WarmPool:
                 on_episode(run_index, EpisodeResult.model_validate(payload))
             elif kind == "abort":  # the policy broke: the other shards stop too
                 self._stop.set()
+            elif kind == "output" and on_output is not None:  # run_index: the shard's
+                on_output(run_index, payload)
 
     def close(self) -> None:
         """Stop the processes; a shard still running is told to stop and not waited for."""
@@ -190,13 +205,14 @@ def run_warm(
     options: RunOptions,
     on_episode: EpisodeCallback,
     should_stop: Callable[[], bool],
+    on_output: OutputCallback | None = None,
 ) -> list[ShardOutcome]:
     """`WarmPool.run` on a leased pool; once more on a new pool if the leased one turns out to
     have lost a process while idle (nothing had run yet)."""
     for attempt in (1, 2):
         try:
             with leased(processes) as pool:
-                return pool.run(plan, source, shards, options, on_episode, should_stop)
+                return pool.run(plan, source, shards, options, on_episode, should_stop, on_output)
         except PoolBroken:
             if attempt == 2:
                 raise
@@ -300,15 +316,30 @@ def _ready() -> bool:
 
 
 def _shard_in_process(
-    run_id: int, plan: EvaluationPlan, source: PolicySource, shard: Shard, options: RunOptions
+    run_id: int,
+    plan: EvaluationPlan,
+    source: PolicySource,
+    shard: Shard,
+    options: RunOptions,
+    index: int,
+    echo: bool,
 ) -> ShardOutcome:
     def report(run_index: int, episode: EpisodeResult) -> None:
         _events.put((run_id, "episode", run_index, episode.model_dump(mode="json")))
 
+    def output(data: bytes) -> None:
+        _events.put((run_id, "output", index, data))
+
     _shard_done.clear()
     try:
         outcome = run_shard(
-            plan, source, shard, options=options, on_episode=report, should_stop=_stop.is_set
+            plan,
+            source,
+            shard,
+            options=options,
+            on_episode=report,
+            should_stop=_stop.is_set,
+            on_output=output if echo else None,
         )
         if outcome.abort is not None:
             _events.put((run_id, "abort", outcome.abort[0], None))

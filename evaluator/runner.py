@@ -25,11 +25,13 @@ from evaluator.sim import (
     describe_space,
     make_env,
 )
-from evaluator.sources import PolicySource, limit_reached
+from evaluator.sources import EchoingProcess, OutputSink, PolicySource, limit_reached
 from evaluator.suite import NO_CHUNKS, ActionChunks
 from evaluator.video import write_video
 
 EpisodeCallback = Callable[[int, EpisodeResult], None]
+OutputCallback = Callable[[int, bytes], None]
+"""Takes a piece of the output of the policy process of a shard (by its index), as it comes."""
 Unit = tuple[int, tuple[tuple[int, int], ...]]  # (run index, ((episode index, seed), ...))
 
 
@@ -256,8 +258,10 @@ def run_shard(
     options: RunOptions,
     on_episode: EpisodeCallback,
     should_stop: Callable[[], bool] = lambda: False,
+    on_output: OutputSink | None = None,
 ) -> ShardOutcome:
-    """Start a policy process, run the shard's episodes through it, always stop it."""
+    """Start a policy process, run the shard's episodes through it, always stop it. The
+    policy's output goes to `on_output` as it comes, when given and its launcher can."""
     outcome = ShardOutcome()
     limits = plan.limits
     endpoint = PolicyEndpoint(
@@ -267,6 +271,8 @@ def run_shard(
     )
     endpoint.should_stop = should_stop
     process = source.launch(endpoint=endpoint.address, socket_dir=endpoint.socket_dir)
+    if on_output is not None and isinstance(process, EchoingProcess):
+        process.echo(on_output)
     first: TaskEnv | None = None
     try:
         # Built while the policy process starts: the two start-ups overlap.

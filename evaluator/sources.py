@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Protocol, runtime_checkable
@@ -27,6 +28,9 @@ from evaluator.sandbox_command import SandboxLimits
 log = logging.getLogger(__name__)
 
 LOG_TAIL_BYTES = 64 * 1024
+ECHO_LIMIT_BYTES = 16 * 1024 * 1024
+"""Of a policy's output passed on as it comes (`manieval evaluate --policy-output`), the first
+this many bytes; of the rest, only the last LOG_TAIL_BYTES, at its end."""
 POLICY_ENTRYPOINT = "policy.py"
 MAX_SIGNAL = 64
 STOP_GRACE_S = 1.0  # a sandboxed policy told to close normally exits well within this
@@ -64,6 +68,57 @@ def limit_reached(process: PolicyProcess) -> FailureKind | None:
     return process.limit_reached() if isinstance(process, ConfinedProcess) else None
 
 
+OutputSink = Callable[[bytes], None]
+"""Takes the policy's output (stdout and stderr, interleaved) as it comes, in pieces."""
+
+
+@runtime_checkable
+class EchoingProcess(Protocol):
+    """A policy process whose output can be passed on as it comes, not only its tail kept."""
+
+    def echo(self, sink: OutputSink) -> None:
+        """Pass everything the policy has printed, and will print, on to `sink` (bounded by
+        OutputEcho); `sink` is called on another thread."""
+        ...
+
+
+class OutputEcho:
+    """Passes output on as it comes up to `limit` bytes, then keeps only the last
+    LOG_TAIL_BYTES, passed on at the end after a line saying how much was left out: a policy
+    that prints without end fills no memory, disk or terminal through it."""
+
+    def __init__(self, sink: OutputSink, *, limit: int = ECHO_LIMIT_BYTES) -> None:
+        self._sink = sink
+        self._room = limit
+        self._held = bytearray()
+        self._dropped = 0
+        self._closed = False
+
+    def feed(self, data: bytes) -> None:
+        """Pass `data` on, or hold its end once the limit is reached."""
+        if self._closed or not data:
+            return
+        if self._room > 0:
+            passed, data = data[: self._room], data[self._room :]
+            self._room -= len(passed)
+            self._sink(passed)
+        self._held += data
+        if len(self._held) > LOG_TAIL_BYTES:
+            excess = len(self._held) - LOG_TAIL_BYTES
+            del self._held[:excess]
+            self._dropped += excess
+
+    def close(self) -> None:
+        """The output has ended: pass on what was held back."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._held:
+            left_out = self._dropped
+            note = f"\n[... {left_out} bytes of the policy's output left out ...]\n"
+            self._sink((note if left_out else "").encode() + bytes(self._held))
+
+
 class PolicySource(Protocol):
     """Something that can start a policy which connects to `endpoint`."""
 
@@ -80,17 +135,41 @@ class LogTail:
         self._limit = limit
         self._buffer = bytearray()
         self._lock = threading.Lock()
+        self._echo: OutputEcho | None = None
+        self._echo_lock = threading.Lock()  # held while passing on: keeps the pieces in order
+        self._ended = False
         self.total_bytes = 0
         self._thread = threading.Thread(target=self._drain, daemon=True, name="policy-log")
         self._thread.start()
 
     def _drain(self) -> None:
         while chunk := self._stream.read1(65536):  # type: ignore[attr-defined]
+            with self._echo_lock:
+                with self._lock:
+                    self.total_bytes += len(chunk)
+                    self._buffer += chunk
+                    if len(self._buffer) > self._limit:
+                        del self._buffer[: len(self._buffer) - self._limit]
+                    echo = self._echo
+                if echo is not None:
+                    echo.feed(chunk)
+        with self._echo_lock:
+            self._ended = True
+            if self._echo is not None:
+                self._echo.close()
+
+    def echo(self, sink: OutputSink) -> None:
+        """Pass on what was printed so far (what the tail still holds), then the rest as it
+        comes (see `EchoingProcess`)."""
+        with self._echo_lock:
             with self._lock:
-                self.total_bytes += len(chunk)
-                self._buffer += chunk
-                if len(self._buffer) > self._limit:
-                    del self._buffer[: len(self._buffer) - self._limit]
+                self._echo = OutputEcho(sink)
+                earlier, dropped = bytes(self._buffer), self.total_bytes - len(self._buffer)
+            if dropped:
+                sink(f"[... {dropped} earlier bytes dropped]\n".encode())
+            self._echo.feed(earlier)
+            if self._ended:
+                self._echo.close()
 
     def text(self) -> str:
         """The kept tail, decoded leniently."""
@@ -130,6 +209,10 @@ class LocalProcess:
     def log_tail(self) -> str:
         """The last bytes of the policy's stdout and stderr."""
         return self._log.text()
+
+    def echo(self, sink: OutputSink) -> None:
+        """Pass the policy's output on to `sink` as it comes (see `EchoingProcess`)."""
+        self._log.echo(sink)
 
     def exit_detail(self) -> str | None:
         """After stop(): the limit the sandbox reached, or how it exited by itself."""

@@ -126,6 +126,24 @@ NO_CHUNKS = ActionChunks()
 """One action per call: protocol 1's way, and every suite's unless it says otherwise."""
 
 
+class PolicyResources(_Strict):
+    """What each policy container is given beyond the service's CPU and memory limits."""
+
+    gpus: int = Field(default=0, ge=0, le=8)
+    """GPUs for the policy's container (0: none). A service gives a policy at most its
+    operator's `MANIEVAL_POLICY_GPUS` and refuses the suite's submissions if that is fewer."""
+
+    def refusal(self, *, available: int) -> str | None:
+        """Why a service that gives a policy at most `available` GPUs cannot run it, or None."""
+        if self.gpus <= available:
+            return None
+        given = f"at most {available}" if available else "none"
+        return (
+            f"this challenge asks for {self.gpus} GPU{'s' if self.gpus > 1 else ''} per policy, "
+            f"and this service has {given} for policies (its operator sets MANIEVAL_POLICY_GPUS)"
+        )
+
+
 class Suite(_Strict):
     """A benchmark: what to run, on which seeds, under which conditions."""
 
@@ -164,6 +182,10 @@ class Suite(_Strict):
     """At most this many frames per second of the episode's control time (None: one frame
     after every step): every k-th step is filmed, k the smallest whole number that keeps the
     rate under it, and the last step always. Not in the hash either."""
+    policy: PolicyResources = PolicyResources()
+    """What the policy's container is given (`policy: {gpus: 1}`). Not in the hash: like the
+    service's CPU and memory limits, hardware makes a policy faster or slower, while what it
+    is scored on (tasks, seeds, conditions, time limits) stays what the hash names."""
 
     @model_validator(mode="after")
     def _unique_names(self) -> Suite:
@@ -208,7 +230,7 @@ class Suite(_Strict):
 
     def sha256(self) -> str:
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
-        content = self.model_dump(mode="json", exclude={"shards", "title", *RECORDING})
+        content = self.model_dump(mode="json", exclude={"shards", "title", "policy", *RECORDING})
         for name in _HASHED_WHEN_SET:  # suites that do not use a newer setting keep their hash
             if getattr(self, name) == type(self).model_fields[name].default:
                 del content[name]

@@ -24,10 +24,11 @@ from rich.table import Table
 from rich.text import Text
 
 from manieval import render
+from manieval.policy_output import FileOutput, LiveOutput, PolicyOutput, policy_output, shown
 
 if TYPE_CHECKING:  # the evaluator (torch, SAPIEN) is imported when the command runs
     from evaluator.plan import EvaluationPlan
-    from evaluator.results import EvaluationResult
+    from evaluator.results import Abort, EvaluationResult
     from evaluator.sources import PolicySource
 
 SECRET_ENV = "MANIEVAL_SEED_SECRET"
@@ -74,6 +75,16 @@ def evaluate(
         Path | None,
         typer.Option(help="Record each task's first episode to mp4s in this directory."),
     ] = None,
+    policy_output_to: Annotated[
+        str | None,
+        typer.Option(
+            "--policy-output",
+            metavar="live|FILE",
+            help="Show what the policy prints (stdout and stderr) as it runs: 'live' prints "
+            "each line on stderr after 'policy | '; anything else is a file to write it to. "
+            "Whatever the outcome; without it, only an aborted run shows its last lines.",
+        ),
+    ] = None,
 ) -> None:
     """Evaluate a policy on a benchmark suite and print per-task success rates."""
     from evaluator.plan import build_plan
@@ -90,31 +101,51 @@ def evaluate(
             secret=os.environ.get(SECRET_ENV, "").encode() or None,
             record_video=video is not None,
         )
-        source = _source(policy, image, engine)
-    except (SuiteError, PolicySourceError, ValueError) as exc:
+        source = _source(policy, image, engine, gpus=plan.policy.gpus)
+        echo = (
+            None
+            if policy_output_to is None
+            else policy_output(policy_output_to, console, processes=workers)
+        )
+    except (SuiteError, PolicySourceError, ValueError, OSError) as exc:
         console.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(2) from None
-    result = _run_with_progress(plan, source, workers=workers, video=video)
+    try:
+        result = _run_with_progress(plan, source, workers=workers, video=video, echo=echo)
+    finally:
+        if echo is not None:
+            echo.close()
     if result.abort is not None:
-        # First and alone: a table of zeros would read as a scored policy.
-        console.print(
-            Text("evaluation aborted ", style="bold red")
-            + Text(f"({result.abort.kind}): {result.abort.reason}")
-        )
-        if result.abort.log_tail:
-            console.print(Text("policy log tail:", style="dim"))
-            console.print(Text(result.abort.log_tail[-2000:]))
-        console.print("no score: the evaluation did not finish")
+        _aborted(result.abort, shown_live=isinstance(echo, LiveOutput))
     else:
         render.stdout().print(result_table(result))
     if json_out is not None:
         json_out.write_text(result.model_dump_json(indent=2))
         console.print(f"result document written to {json_out}")
+    if isinstance(echo, FileOutput):
+        console.print(f"the policy's output written to {echo.path}")
     if result.abort is not None:
         raise typer.Exit(1)
 
 
-def _source(policy: Path | None, image: str | None, engine: str | None) -> PolicySource:
+def _aborted(abort: Abort, *, shown_live: bool) -> None:
+    """Why the evaluation stopped, and the policy's last lines unless they were shown live:
+    first and alone, since a table of zeros would read as a scored policy."""
+    console.print(
+        Text("evaluation aborted ", style="bold red") + Text(f"({abort.kind}): {abort.reason}")
+    )
+    if shown_live:
+        console.print(Text("(the policy's output is above, after 'policy |')", style="dim"))
+    elif abort.log_tail:
+        console.print(Text("policy log tail:", style="dim"))
+        for line in abort.log_tail[-2000:].split("\n"):
+            console.print(Text(shown(line)), highlight=False)
+    console.print("no score: the evaluation did not finish")
+
+
+def _source(
+    policy: Path | None, image: str | None, engine: str | None, *, gpus: int = 0
+) -> PolicySource:
     from evaluator.sources import LocalDirectory, PolicySourceError
 
     if (policy is None) == (image is None):
@@ -132,7 +163,7 @@ def _source(policy: Path | None, image: str | None, engine: str | None) -> Polic
         client = connect(url)
         pinned = pin_local(client, image)
         client.close()
-        source = ContainerImage(pinned, submission=0, attempt=0, engine_url=url)
+        source = ContainerImage(pinned, submission=0, attempt=0, engine_url=url, gpus=gpus)
         source.pull()
     except ExecutorError as exc:
         raise PolicySourceError(str(exc)) from None
@@ -150,7 +181,12 @@ def _split(values: list[str] | None) -> list[str] | None:
 
 
 def _run_with_progress(
-    plan: EvaluationPlan, source: PolicySource, *, workers: int, video: Path | None
+    plan: EvaluationPlan,
+    source: PolicySource,
+    *,
+    workers: int,
+    video: Path | None,
+    echo: PolicyOutput | None = None,
 ) -> EvaluationResult:
     from evaluator.evaluation import evaluate as run_evaluation
 
@@ -163,6 +199,7 @@ def _run_with_progress(
             workers=workers,
             video_dir=video,
             on_episode=lambda index, episode: shown.episode(index, episode.success_once),
+            on_output=echo,
         )
 
 

@@ -49,6 +49,7 @@ def embedded_worker_settings(
         worker_name=EMBEDDED_WORKER,
         data_dir=settings.data_dir,
         allow_local_policies=settings.allow_local_policies,
+        policy_gpus=settings.policy_gpus,  # what the server promises, its worker gives
     )
     if worker.evaluation_processes == 0:  # never in the server's process: it would share its GIL
         worker = worker.model_copy(update={"evaluation_processes": 1})

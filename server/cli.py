@@ -138,7 +138,7 @@ def challenge_load(
     ] = None,
 ) -> None:
     """Create a challenge from a suite, or update the challenge of that name."""
-    from server.challenges.service import ChallengeOptions, load_challenge
+    from server.challenges.service import ChallengeOptions, load_challenge, policy_refusal
 
     s = settings()
     options = ChallengeOptions(
@@ -161,12 +161,21 @@ def challenge_load(
             )
             slug = challenge.slug
             phases = [(p.name, p.seed_commitment) for p in challenge.phases]
+            refusal = policy_refusal(challenge, policy_gpus=s.policy_gpus)
     except (SuiteError, AppError) as exc:
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(1) from None
     console.print(f"challenge {slug} loaded{' (teams)' if teams else ''}")
     for name, commitment in phases:
         console.print(f"  phase {name}: seed commitment {commitment}")
+    if refusal is not None:
+        # Loaded all the same: the GPUs may come later; until then submissions are refused.
+        console.print(
+            f"[yellow]warning:[/] {slug} refuses submissions until this service has the GPUs: "
+            f"{refusal}",
+            markup=True,
+            highlight=False,
+        )
 
 
 @challenge_app.command("teams")

@@ -79,9 +79,10 @@ def embedded_database(settings: Settings, **options: object) -> sessionmaker[Ses
 
 
 def queue_submission(
-    db: Session, user: User, challenge: Challenge, phase: str = "dev"
+    db: Session, user: User, challenge: Challenge, phase: str = "dev", *, policy_gpus: int = 0
 ) -> Submission:
-    """A queued submission through the real submit path, with a stand-in pinned image."""
+    """A queued submission through the real submit path, with a stand-in pinned image (on a
+    service with `policy_gpus` GPUs for a policy)."""
     target = next(p for p in challenge.phases if p.name == phase)
     return submit(
         db,
@@ -92,7 +93,16 @@ def queue_submission(
         description="",
         public=True,
         resolve=lambda _image: Resolved(pinned="x@sha256:" + "0" * 64, size_bytes=1),
+        policy_gpus=policy_gpus,
     )
+
+
+def gpu_suite(directory: Path, *, gpus: int = 1) -> Path:
+    """The server test suite as `server-gpu`, giving each policy `gpus` GPUs."""
+    path = directory / "server-gpu.yaml"
+    text = SUITE.read_text().replace("name: server-tiny", "name: server-gpu")
+    path.write_text(text + f"policy: {{gpus: {gpus}}}\n")
+    return path
 
 
 def result_doc(

@@ -25,9 +25,9 @@ from typing import Any
 from docker.client import DockerClient
 from docker.errors import DockerException, ImageNotFound, NotFound
 from docker.models.containers import Container
-from docker.types import LogConfig, Mount, Ulimit
+from docker.types import DeviceRequest, LogConfig, Mount, Ulimit
 
-from evaluator.sources import LOG_TAIL_BYTES
+from evaluator.sources import LOG_TAIL_BYTES, OutputEcho, OutputSink
 from internal_api.schemas import IMAGE_DIGEST, PINNED_IMAGE
 
 log = logging.getLogger(__name__)
@@ -135,10 +135,12 @@ def container_config(
     limits: ContainerLimits,
     socket_dir: Path,
     endpoint: str,
+    gpus: int = 0,
 ) -> dict[str, Any]:
-    """Keyword arguments for `containers.create`: the policy's sandbox (pure, no I/O)."""
+    """Keyword arguments for `containers.create`: the policy's sandbox (pure, no I/O), with
+    `gpus` GPUs requested as `docker run --gpus N` does."""
     memory = limits.memory_mib * MIB
-    return {
+    config: dict[str, Any] = {
         "image": image,
         "name": name,
         "labels": dict(labels),
@@ -170,6 +172,9 @@ def container_config(
         "stdin_open": False,
         "tty": False,
     }
+    if gpus:
+        config["device_requests"] = [DeviceRequest(count=gpus, capabilities=[["gpu"]])]
+    return config
 
 
 def share_socket(socket_dir: Path, socket_path: Path, *, gid: int = POLICY_UID) -> None:
@@ -211,6 +216,27 @@ def engine(url: str) -> DockerClient:
     return client
 
 
+def gpu_refusal(components: list[dict[str, Any]]) -> str | None:
+    """Why the engine whose `/version` lists these components cannot give a container GPUs,
+    or None."""
+    if any(str(c.get("Name", "")).startswith("Podman") for c in components):
+        # It accepts the request and starts the container without the GPU (podman#22645).
+        return (
+            "the container engine is Podman, whose Docker API ignores GPU requests: run "
+            "policies that need a GPU on Docker with the NVIDIA Container Toolkit, or on "
+            "Kubernetes (docs/deploy.md, GPUs for policies)"
+        )
+    return None
+
+
+def ensure_gpus(client: DockerClient, gpus: int) -> None:
+    """ExecutorError unless the engine can give a container `gpus` GPUs (0: nothing to do)."""
+    if gpus:
+        refusal = gpu_refusal(client.version().get("Components") or [])
+        if refusal is not None:
+            raise ExecutorError(refusal)
+
+
 def ensure_image(client: DockerClient, image: str) -> None:
     """Pull `image` unless the engine has it (a digest names immutable content)."""
     try:
@@ -231,6 +257,8 @@ class ContainerImage:
     limits: ContainerLimits = field(default_factory=ContainerLimits)
     service: str = ""
     """The service it evaluates for (`WorkerSettings.service_id`; "": a local `evaluate`)."""
+    gpus: int = 0
+    """GPUs the container gets (the suite's `policy.gpus`), requested as `--gpus N` does."""
 
     def __post_init__(self) -> None:
         pinned_reference(self.image)
@@ -243,6 +271,7 @@ class ContainerImage:
         """Fetch the image ahead of the evaluation, so its time is not the policy's."""
         client = engine(self.engine_url)
         try:
+            ensure_gpus(client, self.gpus)
             ensure_image(client, self.image)
         except DockerException as exc:
             raise ExecutorError(f"cannot pull {self.image}: {exc}") from exc
@@ -267,11 +296,16 @@ class ContainerImage:
             limits=self.limits,
             socket_dir=socket_dir,
             endpoint=inside,
+            gpus=self.gpus,
         )
         client = engine(self.engine_url)
         try:
+            ensure_gpus(client, self.gpus)
             ensure_image(client, self.image)
             container = client.containers.create(**config)
+        except ExecutorError:
+            client.close()
+            raise
         except DockerException as exc:
             client.close()
             raise ExecutorError(f"cannot create a container of {self.image}: {exc}") from exc
@@ -281,15 +315,26 @@ class ContainerImage:
             _remove(container)
             client.close()
             raise ExecutorError(f"cannot start {config['name']}: {exc}") from exc
-        return ContainerProcess(client, container, memory_mib=self.limits.memory_mib)
+        return ContainerProcess(
+            client, container, memory_mib=self.limits.memory_mib, engine_url=self.engine_url
+        )
 
 
 class ContainerProcess:
     """A running policy container: its state, output and removal through the engine's API."""
 
-    def __init__(self, client: DockerClient, container: Container, *, memory_mib: int) -> None:
+    def __init__(
+        self,
+        client: DockerClient,
+        container: Container,
+        *,
+        memory_mib: int,
+        engine_url: str = DEFAULT_ENGINE_URL,
+    ) -> None:
         self._client = client
         self._container = container
+        self._engine_url = engine_url
+        self._echo: threading.Thread | None = None
         self.name = str(container.name)
         self._memory_mib = memory_mib
         self._lock = threading.Lock()
@@ -317,6 +362,29 @@ class ContainerProcess:
         """The last bytes of the policy's stdout and stderr (kept after the container is gone)."""
         return self._tail if self._tail is not None else self._read_logs()
 
+    def echo(self, sink: OutputSink) -> None:
+        """Pass the container's output on to `sink` as it comes, from its start (see
+        `evaluator.sources.EchoingProcess`), until the container ends."""
+        self._echo = threading.Thread(
+            target=self._follow, args=(OutputEcho(sink),), daemon=True, name="policy-output"
+        )
+        self._echo.start()
+
+    def _follow(self, echo: OutputEcho) -> None:
+        # A client of its own without a read timeout (the SDK passes None on to requests, its
+        # stubs say int): a policy may print nothing for longer than any request may take.
+        url = self._engine_url
+        client = DockerClient(base_url=url, version=_api_versions.get(url), timeout=None)  # type: ignore[arg-type]
+        try:
+            container = client.containers.get(self.name)
+            for chunk in container.logs(stdout=True, stderr=True, stream=True, follow=True):
+                echo.feed(chunk)
+        except Exception as exc:  # the engine's, requests' or urllib3's: the stream broke off
+            echo.feed(f"\n[the policy's output could not be followed: {exc}]\n".encode())
+        finally:
+            echo.close()
+            client.close()
+
     def stop(self) -> None:
         """Give the policy a moment to exit, keep its log tail, then kill and remove it."""
         if self._stopped:
@@ -335,6 +403,8 @@ class ContainerProcess:
             )
         self._tail = self._read_logs()
         _remove(self._container)
+        if self._echo is not None:
+            self._echo.join(STOP_GRACE_S)  # the stream ends with the container
         with self._lock:
             if self._state is None:
                 self._state = {}  # killed by us: no exit of the policy's own

@@ -42,9 +42,10 @@ class NotRunnable(Exception):
 
 
 def policy_source(
-    image: str, settings: WorkerSettings, *, submission_id: int, attempt: int
+    image: str, settings: WorkerSettings, *, submission_id: int, attempt: int, gpus: int = 0
 ) -> PolicySource:
-    """Where the attempt's policy comes from: a bundled directory (demo) or a pinned image."""
+    """Where the attempt's policy comes from: a bundled directory (demo) or a pinned image
+    (given `gpus` GPUs)."""
     if image.startswith(LOCAL_PREFIX):
         if not settings.allow_local_policies:
             raise NotRunnable("local policies are disabled on this worker")
@@ -65,6 +66,7 @@ def policy_source(
         engine_url=settings.docker_engine_url,
         limits=limits,
         service=settings.service_id,
+        gpus=gpus,
     )
 
 
@@ -90,6 +92,9 @@ def execute(api: ServerAPI, settings: WorkerSettings, handed: Assignment) -> Sta
     (the embedded service queues it again, `server.submissions.work.end_stopped`).
     """
     sid, attempt = handed.submission_id, handed.attempt
+    refusal = handed.plan.policy.refusal(available=settings.policy_gpus)
+    if refusal is not None:  # the server's MANIEVAL_POLICY_GPUS promised more than we have
+        return api.final(sid, attempt, ended(State.ERROR, f"cannot run: {refusal}"))
     if settings.executor == "kubernetes" and not handed.image.startswith(LOCAL_PREFIX):
         from worker.kubernetes.watch import run_as_job
 
@@ -97,7 +102,13 @@ def execute(api: ServerAPI, settings: WorkerSettings, handed: Assignment) -> Sta
         # and the reconciler removes its Job (no longer an active attempt's).
         return run_as_job(api, settings, handed, stop=api.stop)
     try:
-        source = policy_source(handed.image, settings, submission_id=sid, attempt=attempt)
+        source = policy_source(
+            handed.image,
+            settings,
+            submission_id=sid,
+            attempt=attempt,
+            gpus=handed.plan.policy.gpus,
+        )
         pull = getattr(source, "pull", None)
         if pull is not None:
             pull()  # before `running`: pulling time is not the policy's budget

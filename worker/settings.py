@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import platformdirs
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 
@@ -65,6 +65,10 @@ class WorkerSettings(BaseSettings):
     embedded worker, whose threads share the server's process, uses at least 1."""
     policy_memory_mib: int = Field(default=2048, ge=64)
     policy_cpus: float = Field(default=1.0, gt=0)
+    policy_gpus: int = Field(default=0, ge=0, le=8)
+    """GPUs this worker can give one policy container (a suite's ``policy: {gpus: N}``): an
+    attempt that asks for more ends ``error`` with the reason; the server's setting of the same
+    name refuses such submissions before they are queued. 0: none."""
 
     executor: Literal["docker", "kubernetes"] = "docker"
     """Where policy images run: ``docker`` (the engine above, evaluator in the worker) or
@@ -84,6 +88,12 @@ class WorkerSettings(BaseSettings):
     k8s_tolerations: list[dict[str, str | int]] = Field(default_factory=list)
     """The eval pods' tolerations, as JSON (``[{"key": "manieval.io/eval", "operator":
     "Exists", "effect": "NoSchedule"}]``): for a tainted evaluation node pool."""
+    k8s_gpu_node_selector: Annotated[dict[str, str], NoDecode] = Field(default_factory=dict)
+    """Added to the nodeSelector of eval pods that request a GPU (the policy's, or the
+    evaluator's for a ``physx_cuda`` suite), as ``k8s_node_selector``: the GPU node pool."""
+    k8s_gpu_tolerations: list[dict[str, str | int]] = Field(default_factory=list)
+    """Added to the tolerations of eval pods that request a GPU, as ``k8s_tolerations`` (the
+    GPU pool's taint, often ``nvidia.com/gpu``)."""
     k8s_priority_class: str | None = None
     """The eval pods' PriorityClass (a low one lets the cluster's own pods preempt them)."""
     k8s_image_pull_secrets: Annotated[tuple[str, ...], NoDecode] = ()
@@ -105,16 +115,16 @@ class WorkerSettings(BaseSettings):
     log_format: Literal["text", "json"] = "text"
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
-    @field_validator("k8s_node_selector", mode="before")
+    @field_validator("k8s_node_selector", "k8s_gpu_node_selector", mode="before")
     @classmethod
-    def _pairs(cls, value: Any) -> Any:
+    def _pairs(cls, value: Any, info: ValidationInfo) -> Any:
         if not isinstance(value, str):
             return value
         if value.strip().startswith("{"):
             return json.loads(value)
         pairs = [p.strip() for p in value.split(",") if p.strip()]
         if any("=" not in p for p in pairs):
-            raise ValueError("MANIEVAL_K8S_NODE_SELECTOR is JSON or key=value,...")
+            raise ValueError(f"MANIEVAL_{str(info.field_name).upper()} is JSON or key=value,...")
         return dict(p.split("=", 1) for p in pairs)
 
     @field_validator("k8s_image_pull_secrets", mode="before")

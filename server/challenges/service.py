@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import selectinload
 
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
-from server.kit.errors import Invalid, NotFound
+from server.kit.errors import Conflict, Invalid, NotFound
 from server.models import Challenge, Phase, utcnow
 from server.standings.entries import rebuild
 
@@ -133,6 +133,27 @@ def display_title(name: str, declared: str | None = None) -> str:
 def suite_of(challenge: Challenge) -> Suite:
     """The suite the challenge was loaded from, as stored with it."""
     return Suite.model_validate(yaml.safe_load(challenge.suite_yaml))
+
+
+class GpusUnavailable(Conflict):
+    """The challenge's suite gives each policy more GPUs than this service has for one: its
+    submissions could never run, so they are refused rather than queued."""
+
+    code = "gpus_unavailable"
+
+
+def policy_refusal(challenge: Challenge, *, policy_gpus: int) -> str | None:
+    """Why a service that gives a policy at most `policy_gpus` GPUs cannot evaluate the
+    challenge's submissions, or None."""
+    return suite_of(challenge).policy.refusal(available=policy_gpus)
+
+
+def check_servable(challenge: Challenge, *, policy_gpus: int) -> None:
+    """GpusUnavailable, with the reason, if the challenge's policies need GPUs this service
+    does not have (`MANIEVAL_POLICY_GPUS`)."""
+    refusal = policy_refusal(challenge, policy_gpus=policy_gpus)
+    if refusal is not None:
+        raise GpusUnavailable(refusal)
 
 
 def phase_seed_map(suite: Suite, phase: str, seed_secret: str) -> dict[str, list[int]]:

@@ -108,6 +108,11 @@ class Settings(BaseSettings):
     allow_local_policies: bool = False
     """Accept ``local:NAME`` submissions of the bundled example policies (demo only)."""
 
+    policy_gpus: int = Field(default=0, ge=0, le=8)
+    """GPUs the service's workers can give one policy (their ``MANIEVAL_POLICY_GPUS``): a
+    challenge whose suite asks for more (``policy: {gpus: N}``) refuses submissions, saying
+    why, instead of queueing what no worker could run. 0: none."""
+
     queue: Literal["inline", "celery"] = "inline"
     """``inline``: the embedded worker's threads in the server process (embedded default, no
     Redis);

@@ -86,6 +86,7 @@ def create_submission(body: SubmitIn, request: Request, user: UserDep, db: DBDep
         method=Method(name=body.method, paper_url=body.paper_url, code_url=body.code_url),
         resolve=svc.resolve,
         require_verified_email=svc.settings.email_verification_required,
+        policy_gpus=svc.settings.policy_gpus,
     )
     db.commit()
     svc.dispatcher.dispatch()  # after the commit; the periodic sweep retries if this fails

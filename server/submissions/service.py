@@ -19,6 +19,7 @@ from sqlalchemy.orm import joinedload
 from evaluator import results
 from evaluator.bundled import LOCAL_PREFIX
 from server.challenges.quota import check_quota
+from server.challenges.service import check_servable
 from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, Unavailable
 from server.models import (
     FINAL_STATES,
@@ -100,9 +101,11 @@ def submit(
     resolve: Resolver,
     method: Method | None = None,
     require_verified_email: bool = False,
+    policy_gpus: int = 0,
     now: datetime | None = None,
 ) -> Submission:
-    """Accept a submission (state `queued`) or raise; the caller commits, then dispatches."""
+    """Accept a submission (state `queued`) or raise; the caller commits, then dispatches.
+    `policy_gpus`: the GPUs this service can give a policy (`MANIEVAL_POLICY_GPUS`)."""
     now = now or utcnow()
     if require_verified_email and user.email_verified_at is None:
         raise Forbidden(
@@ -120,6 +123,7 @@ def submit(
             f"phase {phase.name!r} of {challenge.slug!r} {verb} at {when:%Y-%m-%d %H:%M} UTC",
             fields={"phase": f"not open for submissions ({verb})"},
         )
+    check_servable(challenge, policy_gpus=policy_gpus)
     # Resolve before taking the lock: it talks to the registry.
     resolved = resolve_as(resolve, image, owner=user.username)
 

@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session as DB
 
 from server.accounts.deps import PostedDep, ViewerDep
 from server.challenges.quota import quota_use
-from server.challenges.service import get_challenge, get_phase
+from server.challenges.service import get_challenge, get_phase, policy_refusal
 from server.kit.deps import DBDep, limit
 from server.kit.errors import AppError, Forbidden, Invalid
 from server.kit.pages import Viewer, redirect, render, signed_in
@@ -59,6 +59,7 @@ def _form(
         local_policies=services(request).settings.allow_local_policies,
         push=push_commands(request, user=user, challenge=challenge),
         images_refused=images_refused(services(request).resolve),
+        gpus_refused=policy_refusal(challenge, policy_gpus=services(request).settings.policy_gpus),
     )
     if error is not None:
         response.headers.update(error.headers())
@@ -173,6 +174,7 @@ def submit_post(
             method=Method(name=method, paper_url=paper_url, code_url=code_url),
             resolve=svc.resolve,
             require_verified_email=svc.settings.email_verification_required,
+            policy_gpus=svc.settings.policy_gpus,
         )
         db.commit()
     except AppError as exc:

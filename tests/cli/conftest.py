@@ -26,7 +26,7 @@ from typer.testing import CliRunner, Result
 from manieval.cli import app
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.settings import Settings
-from testkit.factories import PASSWORD, SUITE, embedded_database
+from testkit.factories import PASSWORD, SUITE, embedded_database, gpu_suite
 
 REPO = Path(__file__).resolve().parents[2]
 STARTUP_SECONDS = 90.0
@@ -66,7 +66,8 @@ def clean_environment() -> dict[str, str]:
 
 
 def load_challenges(settings: Settings) -> None:
-    """`server-tiny` and `server-long` (50 a day, 3 at once), and `server-quota` (1 a day)."""
+    """`server-tiny` and `server-long` (50 a day, 3 at once), `server-quota` (1 a day), and
+    `server-gpu` (a GPU per policy, which this service has not)."""
     embedded_database(settings, quota_per_day=50, quota_concurrent=3)
     quota_suite = settings.data_dir / "server-quota.yaml"
     quota_suite.write_text(SUITE.read_text().replace("name: server-tiny", "name: server-quota"))
@@ -78,6 +79,12 @@ def load_challenges(settings: Settings) -> None:
             db,
             quota_suite,
             ChallengeOptions(quota_per_day=1, quota_concurrent=1),
+            seed_secret=settings.secret("seed_secret"),
+        )
+        load_challenge(
+            db,
+            gpu_suite(settings.data_dir),
+            ChallengeOptions(),
             seed_secret=settings.secret("seed_secret"),
         )
 

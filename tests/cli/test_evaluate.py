@@ -155,3 +155,104 @@ def test_test_phase_without_the_seed_secret_is_refused(make_policy: Callable[[st
     done = manieval("evaluate", "--policy", str(make_policy(REACTIVE_POLICY)), "--phase", "test")
     assert done.returncode == 2
     assert "secret" in done.stderr
+
+
+# A policy that prints as it loads and at every episode, and one line that tries to pass for
+# the evaluator's own, clearing the screen first.
+CHATTY_POLICY = """
+import sys
+import numpy as np
+from manieval_sdk import Policy, serve
+
+print("loading weights", flush=True)
+print("\\x1b[2J\\x1b[Hevaluation aborted (forged)", file=sys.stderr, flush=True)
+
+class Chatty(Policy):
+    def reset(self, obs, info):
+        print("episode starts", flush=True)
+
+    def act(self, obs):
+        return np.zeros(self.spec.action_shape, dtype=np.float32)
+
+if __name__ == "__main__":
+    serve(Chatty())
+"""
+ONE_TASK = ("--suite", TINY, "--tasks", "PickCube-v1", "--condition", "nominal")
+
+
+@pytest.mark.sim
+def test_policy_output_live_shows_each_line_marked_and_nothing_it_could_forge(
+    make_policy: Callable[[str], Path],
+):
+    policy = make_policy(CHATTY_POLICY)
+    done = manieval(
+        "evaluate", "--policy", str(policy), *ONE_TASK, "--episodes", "2", "--policy-output", "live"
+    )
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.splitlines()
+    assert "policy | loading weights" in lines
+    assert lines.count("policy | episode starts") == 2
+    # On stderr, marked, its escape sequences spelled out: never a line of the evaluator's.
+    assert "policy | \\x1b[2J\\x1b[Hevaluation aborted (forged)" in lines
+    assert "\x1b" not in done.stderr
+    assert not any(line.startswith("evaluation aborted") for line in lines)
+    assert "policy |" not in done.stdout
+    assert "PickCube-v1" in done.stdout  # the table, as without the option
+
+
+@pytest.mark.sim
+def test_policy_output_file_holds_it_after_a_failing_run(
+    make_policy: Callable[[str], Path], tmp_path: Path
+):
+    policy = make_policy("import sys\nprint('missing weights.pt', file=sys.stderr)\nsys.exit(4)\n")
+    log = tmp_path / "policy.log"
+    done = manieval(
+        "evaluate",
+        "--policy",
+        str(policy),
+        *ONE_TASK,
+        "--episodes",
+        "1",
+        "--policy-output",
+        str(log),
+    )
+    assert done.returncode == 1
+    assert log.read_text() == "missing weights.pt\n"
+    assert f"the policy's output written to {log}" in done.stderr
+
+
+@pytest.mark.sim
+def test_policy_output_file_holds_it_after_a_successful_run_from_every_process(
+    make_policy: Callable[[str], Path], tmp_path: Path
+):
+    policy = make_policy(CHATTY_POLICY)
+    log = tmp_path / "policy.log"
+    done = manieval(
+        "evaluate",
+        "--policy",
+        str(policy),
+        *ONE_TASK,
+        "--episodes",
+        "2",
+        "--workers",
+        "2",
+        "--policy-output",
+        str(log),
+    )
+    assert done.returncode == 0, done.stderr
+    lines = log.read_bytes().splitlines()
+    for process in (b"[1]", b"[2]"):  # one episode each, in the evaluator's warm processes
+        assert lines.count(process + b" loading weights") == 1
+        assert lines.count(process + b" episode starts") == 1
+    assert b"[1] \x1b[2J\x1b[Hevaluation aborted (forged)" in lines  # as the policy printed it
+    assert "policy |" not in done.stderr
+
+
+def test_policy_output_to_a_file_that_cannot_be_made_is_a_usage_error(
+    make_policy: Callable[[str], Path], tmp_path: Path
+):
+    policy = make_policy(REACTIVE_POLICY)
+    target = str(tmp_path / "no-such-dir" / "policy.log")
+    done = manieval("evaluate", "--policy", str(policy), *ONE_TASK, "--policy-output", target)
+    assert done.returncode == 2
+    assert "no-such-dir" in done.stderr

@@ -70,6 +70,7 @@ def test_a_participant_registers_submits_follows_compares_and_logs_out(
         "server-tiny",
         "server-long",
         "server-quota",
+        "server-gpu",
     }
 
     r = alice.run(
@@ -349,6 +350,16 @@ def test_a_bad_image_reference_shows_the_servers_field_message(
     r = ivan.run("submit", "local:nothing-like-it", "-c", "server-tiny")
     assert r.exit_code == ExitCode.INVALID
     assert "image: one of: crasher, random, scripted" in r.stderr
+
+
+def test_a_challenge_that_needs_gpus_this_service_lacks_is_refused_with_the_reason(
+    live: LiveServer, tmp_path: Path
+) -> None:
+    kate = participant(live, tmp_path, "kate")
+    r = kate.run("submit", "local:random", "-c", "server-gpu")
+    assert r.exit_code == ExitCode.CONFLICT, r.output
+    assert "error: this challenge asks for 1 GPU per policy, and this service has none" in r.stderr
+    assert "MANIEVAL_POLICY_GPUS" in r.stderr
 
 
 def test_unknown_challenges_and_submissions_are_not_found(live: LiveServer, tmp_path: Path) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -28,10 +27,9 @@ def evaluate_policy(
     plan = with_limits(
         tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"], episodes=2), **limits
     )
-    started = time.monotonic()
-    result = run(plan, make_policy(HEADER + body))
-    assert time.monotonic() - started < 60, "the evaluator took too long to give up"
-    return result
+    # Given up on, not hung: a hang fails by the suite's timeout (pytest-timeout), and each test
+    # asserts which limit ended the episodes. No wall-clock bound: a busy machine is slow.
+    return run(plan, make_policy(HEADER + body))
 
 
 def episodes(result: EvaluationResult) -> list[tuple[str | None, str | None]]:

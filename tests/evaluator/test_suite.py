@@ -2,8 +2,15 @@ from pathlib import Path
 
 import pytest
 
+from evaluator.job import evaluation_job
 from evaluator.plan import build_plan
-from evaluator.suite import SuiteError, load_suite, phase_seeds, seed_commitment
+from evaluator.suite import (
+    PolicyResources,
+    SuiteError,
+    load_suite,
+    phase_seeds,
+    seed_commitment,
+)
 
 CORE_TASKS = {
     "PickCube-v1",
@@ -147,3 +154,43 @@ def test_ignore_terminations_travels_from_the_suite_into_the_plan(tmp_path: Path
     suite = load_suite(write_suite(tmp_path, text + "ignore_terminations: true\n"))
     assert build_plan(suite, "dev").ignore_terminations is True
     assert build_plan(load_suite("maniskill-core"), "dev").ignore_terminations is False
+
+
+def test_a_gpu_request_for_the_policy_reaches_the_plan_and_the_job_but_not_the_hash(
+    tmp_path: Path,
+):
+    text = (Path(__file__).parents[2] / "suites" / "maniskill-core.yaml").read_text()
+    suite = load_suite(write_suite(tmp_path, text + "policy: {gpus: 2}\n"))
+    assert suite.policy.gpus == 2
+    assert load_suite("maniskill-core").policy.gpus == 0  # the default: none
+    # Hardware makes a policy faster, not its scores other: the same suite, the same hash.
+    assert suite.sha256() == CORE_SUITE_SHA256
+    plan = build_plan(suite, "dev", episodes=1)
+    assert plan.policy.gpus == 2
+    assert evaluation_job(plan, suite_yaml=text + "policy: {gpus: 2}\n").plan() == plan
+
+
+@pytest.mark.parametrize(
+    ("policy", "message"),
+    [
+        ("{gpus: -1}", "greater than or equal to 0"),
+        ("{gpus: 9}", "less than or equal to 8"),
+        ("{cpus: 4}", "cpus"),
+    ],
+)
+def test_an_invalid_policy_section_is_refused(tmp_path: Path, policy: str, message: str):
+    text = (Path(__file__).parents[2] / "suites" / "maniskill-core.yaml").read_text()
+    with pytest.raises(SuiteError, match=message):
+        load_suite(write_suite(tmp_path, text + f"policy: {policy}\n"))
+
+
+def test_a_service_without_enough_gpus_says_why_it_cannot_run_the_policy():
+    assert PolicyResources().refusal(available=0) is None
+    assert PolicyResources(gpus=1).refusal(available=1) is None
+    assert PolicyResources(gpus=1).refusal(available=0) == (
+        "this challenge asks for 1 GPU per policy, and this service has none for policies "
+        "(its operator sets MANIEVAL_POLICY_GPUS)"
+    )
+    assert "2 GPUs per policy, and this service has at most 1" in str(
+        PolicyResources(gpus=2).refusal(available=1)
+    )

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from manieval.cli import app
 from server.kit.db import make_engine, session_factory
 from server.models import Challenge, User
-from testkit.factories import PASSWORD, SUITE
+from testkit.factories import PASSWORD, SUITE, gpu_suite
 
 runner = CliRunner()
 
@@ -65,6 +65,20 @@ def test_challenge_load_creates_then_updates(env: Path) -> None:
         closes = {p.name: p.closes_at for p in challenges[0].phases}
         assert closes["test"] is not None
         assert closes["test"].year == 2030
+
+
+def test_challenge_load_warns_when_this_service_cannot_give_its_policies_gpus(
+    env: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    suite = str(gpu_suite(env))
+    r = runner.invoke(app, ["challenge", "load", suite])
+    assert r.exit_code == 0, r.output  # loaded all the same: the GPUs may come later
+    assert "warning: server-gpu refuses submissions until this service has the GPUs" in r.output
+    assert "MANIEVAL_POLICY_GPUS" in r.output
+    monkeypatch.setenv("MANIEVAL_POLICY_GPUS", "1")
+    r = runner.invoke(app, ["challenge", "load", suite])
+    assert r.exit_code == 0, r.output
+    assert "warning" not in r.output
 
 
 @pytest.mark.parametrize(

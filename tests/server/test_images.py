@@ -13,7 +13,6 @@ import hashlib
 import json
 import re
 import threading
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -471,11 +470,10 @@ def test_other_registry_is_not_allowed_and_never_contacted() -> None:
 
 def test_registry_that_is_down_is_unavailable_at_once() -> None:
     domain = f"127.0.0.1:{free_port()}"
-    client = RegistryClient(allowed_registries=[domain], insecure_registries=[domain], timeout=5)
-    started = time.monotonic()
+    # At once: a client that waited for its timeout (an hour) would run into the suite's.
+    client = RegistryClient(allowed_registries=[domain], insecure_registries=[domain], timeout=3600)
     with pytest.raises(RegistryUnavailable, match=f"cannot reach registry {domain}"):
         client.resolve(parse_reference(f"{domain}/team/policy:v1"), max_bytes=MB)
-    assert time.monotonic() - started < 2.0
 
 
 def test_registry_not_listed_as_insecure_is_spoken_to_over_https(
@@ -829,8 +827,7 @@ def test_three_hops_each_within_the_timeout_share_one_deadline() -> None:
 
 
 def test_registry_trickling_its_answer_byte_by_byte_is_cut_at_the_deadline() -> None:
-    # About 110 bytes at 0.3 s each: every read succeeds, the whole answer would take 33 s.
-    started = time.monotonic()
-    with SlowRegistry(pause=0.3, trickle=True) as slow, pytest.raises(RegistryUnavailable):
+    # About 110 bytes at 3 s each: every read succeeds, the whole answer would take 330 s, past
+    # the suite's timeout; cut at the deadline, it takes about one pause.
+    with SlowRegistry(pause=3.0, trickle=True) as slow, pytest.raises(RegistryUnavailable):
         slow.resolve(timeout=1)
-    assert time.monotonic() - started < 15  # bounded by the deadline, not by the registry

@@ -37,15 +37,31 @@ from worker.kubernetes.manifest import (
     build_network_policy,
     build_secret,
 )
+from worker.kubernetes.quota import demand
 from worker.kubernetes.spec import job_spec
 
 Json = dict[str, Any]
 VERSIONS = ["1.30", latest_version()]
+GPU_POOL: Json = {
+    "gpu_node_selector": (("cloud.google.com/gke-accelerator", "nvidia-l4"),),
+    "gpu_tolerations": (
+        (("key", "nvidia.com/gpu"), ("operator", "Exists"), ("effect", "NoSchedule")),
+    ),
+}
+
+
+def gpu_policy_evaluation(gpus: int = 1) -> EvaluationJob:
+    """The tiny evaluation, its suite giving each policy `gpus` GPUs."""
+    suite = TINY_SUITE.read_text() + f"policy: {{gpus: {gpus}}}\n"
+    return tiny_evaluation().model_copy(update={"suite_yaml": suite})
+
+
 VARIANTS: dict[str, Json] = {
     "one-pod": {},
     "indexed": {"shards": 3},
     "gpu": {"gpu": True},
     "gvisor": {"runtime_class_name": "gvisor"},
+    "policy-gpus": {"policy_gpus": 2, "evaluation": gpu_policy_evaluation(2), **GPU_POOL},
     "indexed-gpu-gvisor": {"shards": 4, "gpu": True, "runtime_class_name": "gvisor"},
     "node-pool": {
         "node_selector": (("manieval.io/pool", "eval"), ("kubernetes.io/arch", "amd64")),
@@ -277,6 +293,49 @@ def test_a_suite_that_simulates_on_the_gpu_needs_gpu_set():
     with pytest.raises(ValueError, match="physx_cuda"):
         make_spec(evaluation=evaluation)
     assert make_spec(evaluation=evaluation, gpu=True).gpu
+
+
+def test_the_policy_gets_the_gpus_its_suite_asks_for_on_its_own_container():
+    manifest = build_job(make_spec(policy_gpus=2, evaluation=gpu_policy_evaluation(2)))
+    policy = container(manifest, "policy")["resources"]
+    assert policy["requests"][GPU_RESOURCE] == policy["limits"][GPU_RESOURCE] == "2"
+    assert GPU_RESOURCE not in container(manifest, "evaluator")["resources"]["limits"]
+    assert demand(manifest)[f"requests.{GPU_RESOURCE}"] == 2  # what the quota is asked for
+
+
+def test_the_policy_gpus_must_be_what_the_suite_asks_for():
+    with pytest.raises(ValueError, match="policy_gpus must match"):
+        make_spec(policy_gpus=1)  # the tiny suite asks for none
+    with pytest.raises(ValueError, match="policy_gpus must match"):
+        make_spec(evaluation=gpu_policy_evaluation(1))
+    assert make_spec(policy_gpus=1, evaluation=gpu_policy_evaluation(1)).policy_gpus == 1
+
+
+@pytest.mark.parametrize(
+    "gpu_user",
+    [
+        {"policy_gpus": 1, "evaluation": gpu_policy_evaluation(1)},
+        {"gpu": True},  # the evaluator, simulating on physx_cuda: the same pool, the same rule
+    ],
+    ids=["policy", "evaluator"],
+)
+def test_a_pod_that_needs_a_gpu_adds_the_gpu_pools_selector_and_tolerations(gpu_user: Json):
+    pool = {
+        "node_selector": (("manieval.io/pool", "eval"),),
+        "tolerations": ((("key", "manieval.io/eval"), ("operator", "Exists")),),
+    }
+    pod = pod_of(build_job(make_spec(**gpu_user, **pool, **GPU_POOL)))
+    assert pod["nodeSelector"] == {
+        "manieval.io/pool": "eval",
+        "cloud.google.com/gke-accelerator": "nvidia-l4",
+    }
+    assert pod["tolerations"] == [
+        {"key": "manieval.io/eval", "operator": "Exists"},
+        {"key": "nvidia.com/gpu", "operator": "Exists", "effect": "NoSchedule"},
+    ]
+    cpu_only = pod_of(build_job(make_spec(**pool, **GPU_POOL)))
+    assert cpu_only["nodeSelector"] == {"manieval.io/pool": "eval"}
+    assert cpu_only["tolerations"] == [{"key": "manieval.io/eval", "operator": "Exists"}]
 
 
 def test_no_service_account_token_and_no_service_links():
@@ -524,6 +583,40 @@ def test_the_worker_settings_become_the_pods_node_pool_fields(
         worker_settings(settings)
 
 
+def test_the_worker_settings_and_the_suite_give_the_policy_a_gpu_on_the_gpu_pool(
+    settings: Settings, monkeypatch: pytest.MonkeyPatch
+):
+    monkeypatch.setenv(
+        "MANIEVAL_K8S_GPU_NODE_SELECTOR", "cloud.google.com/gke-accelerator=nvidia-l4"
+    )
+    monkeypatch.setenv(
+        "MANIEVAL_K8S_GPU_TOLERATIONS",
+        '[{"key": "nvidia.com/gpu", "operator": "Exists", "effect": "NoSchedule"}]',
+    )
+    monkeypatch.setenv("MANIEVAL_POLICY_GPUS", "1")
+    monkeypatch.setenv("MANIEVAL_EVALUATOR_IMAGE", "registry.example.org/evaluator:1")
+    wsettings = worker_settings(settings)
+    assert wsettings.policy_gpus == 1
+    evaluation = gpu_policy_evaluation(1)
+    handed = Assignment(
+        submission_id=7,
+        attempt=1,
+        plan=evaluation.plan(),
+        suite_yaml=evaluation.suite_yaml,
+        image=make_spec().policy_image,
+        shards=1,
+    )
+    manifest = build_job(job_spec(wsettings, handed))
+    assert container(manifest, "policy")["resources"]["limits"][GPU_RESOURCE] == "1"
+    assert pod_of(manifest)["nodeSelector"] == {"cloud.google.com/gke-accelerator": "nvidia-l4"}
+    assert pod_of(manifest)["tolerations"] == [
+        {"key": "nvidia.com/gpu", "operator": "Exists", "effect": "NoSchedule"}
+    ]
+    monkeypatch.setenv("MANIEVAL_K8S_GPU_NODE_SELECTOR", "accelerator")
+    with pytest.raises(ValueError, match="MANIEVAL_K8S_GPU_NODE_SELECTOR is JSON or key=value"):
+        worker_settings(settings)
+
+
 def test_name_and_labels_identify_the_attempt_on_the_job_and_its_pods():
     manifest = build_job(make_spec(submission_id=42, attempt=3))
     labels = {
@@ -562,6 +655,8 @@ def test_the_same_spec_always_gives_the_same_manifest():
         ({"tolerations": ((("key", "a"), ("effect", "NoRun")),)}, "effect"),
         ({"tolerations": ((("key", "a"), ("operator", "Exists"), ("value", "v")),)}, "Exists"),
         ({"tolerations": ((("key", "a"), ("tolerationSeconds", 5)),)}, "NoExecute"),
+        ({"gpu_node_selector": (("gpu pool", "x"),)}, "node selector"),
+        ({"gpu_tolerations": ((("key", "a"), ("operator", "Matches")),)}, "operator"),
         ({"priority_class_name": "High Priority"}, "priority class"),
         ({"image_pull_secrets": ("Pull_Secret",)}, "pull secret"),
         ({"evaluator_resources": Resources("-1", "1Gi", "1Gi")}, "quantity"),

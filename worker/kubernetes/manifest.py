@@ -12,7 +12,10 @@ uid 65532, a 64 MiB memory-backed `/tmp`, and MANIEVAL_ENDPOINT, HOME=/tmp, PYTH
 Kubernetes has no per-pod process limit: the kubelet's `podPidsLimit` on the evaluation node
 pool bounds it (docs/deploy.md). The evaluation (its seeds) travels in a per-attempt Secret
 (`build_secret`) owned by the Job and mounted into the evaluator alone. Node selector,
-tolerations, priority class, runtime class and pull secrets come from the worker's settings.
+tolerations, priority class, runtime class and pull secrets come from the worker's settings. A
+container that needs GPUs (the evaluator for a `physx_cuda` suite, the policy when its suite
+asks for them) requests them as `nvidia.com/gpu`, and its pod adds the GPU node pool's selector
+and tolerations to those of every evaluation pod.
 `worker.kubernetes.client` creates, adopts, reads, and deletes those Jobs.
 """
 
@@ -98,6 +101,9 @@ class JobSpec:
     evaluator_resources: Resources = Resources(cpu="2", memory="4Gi", ephemeral_storage="2Gi")
     policy_resources: Resources = Resources(cpu="1", memory="2Gi", ephemeral_storage="1Gi")
     gpu: bool = False
+    """The evaluator gets a GPU: the suite simulates on physx_cuda."""
+    policy_gpus: int = 0
+    """GPUs for the policy's container (the suite's `policy.gpus`)."""
     active_deadline_seconds: int = 8400
     ttl_seconds_after_finished: int = 3600
     runtime_class_name: str | None = None
@@ -108,6 +114,10 @@ class JobSpec:
     tolerations: tuple[tuple[tuple[str, str | int], ...], ...] = ()
     """The pod's tolerations, each as (field, value) pairs (key, operator, value, effect,
     tolerationSeconds): for tainted evaluation nodes."""
+    gpu_node_selector: tuple[tuple[str, str], ...] = ()
+    """Added to the nodeSelector of a pod with a container that needs GPUs: the GPU pool."""
+    gpu_tolerations: tuple[tuple[tuple[str, str | int], ...], ...] = ()
+    """Added to the tolerations of a pod with a container that needs GPUs."""
     priority_class_name: str | None = None
     image_pull_secrets: tuple[str, ...] = ()
     """Secrets in the evaluation namespace to pull the evaluator's and policies' images."""
@@ -142,10 +152,10 @@ class JobSpec:
             yield f"video claim {self.video_claim!r} is not a DNS name"
         if self.runtime_class_name is not None and not _DNS_NAME.match(self.runtime_class_name):
             yield f"runtime class {self.runtime_class_name!r} is not a DNS name"
-        for key, value in self.node_selector:
+        for key, value in (*self.node_selector, *self.gpu_node_selector):
             if not _LABEL_KEY.match(key) or not _LABEL_VALUE.match(value):
                 yield f"node selector {key}={value} is not a label key and value"
-        for toleration in self.tolerations:
+        for toleration in (*self.tolerations, *self.gpu_tolerations):
             yield from _toleration_problems(dict(toleration))
         if self.priority_class_name is not None and not _DNS_NAME.match(self.priority_class_name):
             yield f"priority class {self.priority_class_name!r} is not a DNS name"
@@ -165,11 +175,18 @@ class JobSpec:
         else:
             if needs_gpu(plan) and not self.gpu:
                 yield "the suite simulates on physx_cuda: gpu must be set"
+            if plan.policy.gpus != self.policy_gpus:
+                yield f"the suite gives a policy {plan.policy.gpus} GPUs: policy_gpus must match"
 
     @property
     def name(self) -> str:
         """The Job's name, the same for every try of this attempt."""
         return job_name(self.submission_id, self.attempt)
+
+    @property
+    def on_gpu_nodes(self) -> bool:
+        """Whether a container of the pod needs GPUs, so the pod goes to the GPU pool."""
+        return self.gpu or self.policy_gpus > 0
 
 
 def _toleration_problems(toleration: dict[str, str | int]) -> Iterable[str]:
@@ -311,10 +328,13 @@ def _pod_spec(spec: JobSpec) -> dict[str, Any]:
         pod["volumes"].append({"name": "videos", "persistentVolumeClaim": claim})
     if spec.runtime_class_name is not None:
         pod["runtimeClassName"] = spec.runtime_class_name
-    if spec.node_selector:
-        pod["nodeSelector"] = dict(spec.node_selector)
-    if spec.tolerations:
-        pod["tolerations"] = [dict(t) for t in spec.tolerations]
+    gpu_pool = spec.on_gpu_nodes
+    node_selector = (*spec.node_selector, *(spec.gpu_node_selector if gpu_pool else ()))
+    tolerations = (*spec.tolerations, *(spec.gpu_tolerations if gpu_pool else ()))
+    if node_selector:
+        pod["nodeSelector"] = dict(node_selector)
+    if tolerations:
+        pod["tolerations"] = [dict(t) for t in tolerations]
     if spec.priority_class_name is not None:
         pod["priorityClassName"] = spec.priority_class_name
     if spec.image_pull_secrets:
@@ -323,9 +343,6 @@ def _pod_spec(spec: JobSpec) -> dict[str, Any]:
 
 
 def _evaluator_container(spec: JobSpec) -> dict[str, Any]:
-    resources = spec.evaluator_resources.as_dict()
-    if spec.gpu:
-        resources[GPU_RESOURCE] = "1"
     env = {
         JOB_SPEC_FILE_ENV: f"{EVALUATION_MOUNT}/{EVALUATION_KEY}",
         POLICY_ENV: spec.policy_image,
@@ -349,7 +366,7 @@ def _evaluator_container(spec: JobSpec) -> dict[str, Any]:
         "imagePullPolicy": "IfNotPresent",
         "command": list(spec.evaluator_command),
         "env": [{"name": k, "value": v} for k, v in env.items()],
-        "resources": {"requests": resources, "limits": dict(resources)},
+        "resources": _resources(spec.evaluator_resources, gpus=1 if spec.gpu else 0),
         "securityContext": _security(EVALUATOR_UID),
         "terminationMessagePolicy": "FallbackToLogsOnError",
         "volumeMounts": mounts,
@@ -357,7 +374,6 @@ def _evaluator_container(spec: JobSpec) -> dict[str, Any]:
 
 
 def _policy_container(spec: JobSpec) -> dict[str, Any]:
-    resources = spec.policy_resources.as_dict()
     return {
         "name": POLICY,
         "image": spec.policy_image,
@@ -369,13 +385,21 @@ def _policy_container(spec: JobSpec) -> dict[str, Any]:
             {"name": "HOME", "value": "/tmp"},
             {"name": "PYTHONUNBUFFERED", "value": "1"},
         ],
-        "resources": {"requests": resources, "limits": dict(resources)},
+        "resources": _resources(spec.policy_resources, gpus=spec.policy_gpus),
         "securityContext": _security(POLICY_UID),
         "volumeMounts": [
             {"name": "endpoint", "mountPath": ENDPOINT_MOUNT, "readOnly": True},
             {"name": "policy-tmp", "mountPath": "/tmp"},  # memory-backed, as docker's tmpfs
         ],
     }
+
+
+def _resources(resources: Resources, *, gpus: int) -> dict[str, dict[str, str]]:
+    """Requests = limits, with `gpus` NVIDIA GPUs (the device plugin's resource) if any."""
+    wanted = resources.as_dict()
+    if gpus:
+        wanted[GPU_RESOURCE] = str(gpus)
+    return {"requests": wanted, "limits": dict(wanted)}
 
 
 def _security(uid: int) -> dict[str, Any]:
