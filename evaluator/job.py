@@ -24,7 +24,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from evaluator.evaluation import build_result, installed_versions
-from evaluator.plan import EvaluationPlan, TaskRun
+from evaluator.plan import EvaluationPlan, task_run
 from evaluator.results import Abort, EpisodeResult, EvaluationResult, SuiteRef, Versions, Video
 from evaluator.runner import RunOptions, ShardOutcome, make_shards, run_shard
 from evaluator.suite import SEED_LIMIT, Suite, SuiteError
@@ -69,15 +69,7 @@ class EvaluationJob(BaseModel):
                 raise SuiteError(f"task {env_id!r} has no seeds")
         names = self.conditions or tuple(c.name for c in suite.conditions)
         runs = tuple(
-            TaskRun(
-                env_id=task.env_id,
-                obs_mode=task.obs_mode,
-                control_mode=task.control_mode,
-                sim_backend=task.sim_backend,
-                max_episode_steps=task.max_episode_steps,
-                condition=suite.condition(name),
-                seeds=self.seeds[task.env_id],
-            )
+            task_run(suite, task, suite.condition(name), self.seeds[task.env_id])
             for name in names
             for task in suite.tasks
             if task.env_id in self.seeds

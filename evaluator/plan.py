@@ -7,7 +7,15 @@ from collections.abc import Sequence
 from pydantic import BaseModel, ConfigDict, Field
 
 from evaluator.results import SuiteRef
-from evaluator.suite import Condition, Limits, Suite, SuiteError, phase_seeds
+from evaluator.suite import (
+    Condition,
+    Limits,
+    ObsMode,
+    Suite,
+    SuiteError,
+    TaskConfig,
+    phase_seeds,
+)
 
 
 class TaskRun(BaseModel):
@@ -22,6 +30,26 @@ class TaskRun(BaseModel):
     max_episode_steps: int = Field(ge=1)
     condition: Condition
     seeds: tuple[int, ...]
+    instruction: str = ""
+    observation_keys: tuple[str, ...] | None = None
+    """The observation entries the policy may see (None: all)."""
+
+
+def task_run(suite: Suite, task: TaskConfig, condition: Condition, seeds: Sequence[int]) -> TaskRun:
+    """A suite's task under one of its conditions, on these seeds (an `obs_mode` condition
+    shows the task through another observation mode)."""
+    params = condition.params
+    return TaskRun(
+        env_id=task.env_id,
+        obs_mode=params.obs_mode if isinstance(params, ObsMode) else task.obs_mode,
+        control_mode=task.control_mode,
+        sim_backend=task.sim_backend,
+        max_episode_steps=task.max_episode_steps,
+        condition=condition,
+        seeds=tuple(seeds),
+        instruction=task.instruction,
+        observation_keys=suite.observation_keys,
+    )
 
 
 class EvaluationPlan(BaseModel):
@@ -90,17 +118,7 @@ def build_plan(
         for task in selected_tasks:
             count = episodes if episodes is not None else task.episodes
             seeds = phase_seeds(suite, phase, task.env_id, count, secret=secret)
-            runs.append(
-                TaskRun(
-                    env_id=task.env_id,
-                    obs_mode=task.obs_mode,
-                    control_mode=task.control_mode,
-                    sim_backend=task.sim_backend,
-                    max_episode_steps=task.max_episode_steps,
-                    condition=condition,
-                    seeds=tuple(seeds),
-                )
-            )
+            runs.append(task_run(suite, task, condition, seeds))
     return EvaluationPlan(
         suite=SuiteRef(name=suite.name, version=suite.version, sha256=suite.sha256()),
         phase=phase,

@@ -63,6 +63,7 @@ def task_spec(fields: dict[str, Any]) -> TaskSpec:
         action_high=np.asarray(fields["action_space"]["high"]),
         observation_space=fields.get("observation_space", {}),
         extra=fields.get("extra", {}),
+        instruction=str(fields.get("instruction", "")),
     )
 
 
