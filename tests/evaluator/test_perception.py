@@ -113,3 +113,21 @@ def test_a_held_cube_moves_with_the_hand_and_is_looked_for_again_once_let_go():
     assert np.allclose(track.pos, [0.1, 0.0, 0.195])
     track.update(*seen_at(0.2), perception.Hand(pos=np.array([0.1, 0.0, 0.2]), width=0.08))
     assert np.allclose(track.pos, [0.2, 0.0, 0.02])  # let go: seen again where it fell
+
+
+def test_nothing_is_handed_to_the_skill_until_every_object_has_been_seen():
+    eyes = perception.Eyes("PushCube-v1")
+    arm = {"agent": {"qpos": np.zeros(9)}, "extra": {"tcp_pose": np.array([0, 0, 0.3, 1, 0, 0, 0])}}
+    blue = np.array([[-0.01, 0.0, 0.04, 1.0], [0.01, 0.0, 0.04, 1.0], [0.0, 0.01, 0.04, 1.0]])
+    target = np.array([[0.1, 0.1, 0.001, 1.0], [0.3, -0.1, 0.001, 1.0], [0.2, 0.0, 0.001, 1.0]])
+    cube_only = {"pointcloud": {"xyzw": blue, "rgb": np.tile([58, 102, 187], (3, 1))}}
+    assert eyes({**arm, **cube_only}) is None  # the target is out of sight
+    both = {
+        "xyzw": np.concatenate([blue, target]),
+        "rgb": np.concatenate([np.tile([58, 102, 187], (3, 1)), np.tile([204, 71, 76], (3, 1))]),
+    }
+    seen = eyes({**arm, "pointcloud": both})
+    assert seen is not None
+    assert np.allclose(seen["extra"]["goal_pos"], [0.2, 0.0, 0.001])
+    assert np.allclose(seen["extra"]["obj_pose"][:3], [0.0, 0.0, 0.02], atol=0.011)
+    assert np.allclose(seen["extra"]["tcp_pose"], arm["extra"]["tcp_pose"])

@@ -177,7 +177,6 @@ class CubeTrack:
         elif self.grasped and self.pos is not None and EMPTY_WIDTH < hand.width < CLOSING_WIDTH:
             if float(np.linalg.norm(self.pos - hand.pos)) < HELD_DISTANCE:
                 self.held_offset = self.pos - hand.pos
-                self.pos = hand.pos + self.held_offset
                 return
         if self.still and not self.lost and self.pos is not None and self._hidden_by(hand):
             return
@@ -194,11 +193,12 @@ class CubeTrack:
             and -CUBE_HALF < above[2] < HAND_CLEARANCE_Z
         )
 
-    def pose(self) -> Vec:
-        """Position and (w, x, y, z) orientation, as the state observations' `*_pose` entries;
-        at the origin when the cube has not been seen yet."""
-        pos = self.pos if self.pos is not None else np.zeros(3)
-        return np.concatenate([pos, yaw_quaternion(self.yaw)])
+    def entry(self) -> Vec | None:
+        """Position and (w, x, y, z) orientation, as the state observations' `*_pose` entries
+        (None: not seen yet)."""
+        if self.pos is None:
+            return None
+        return np.concatenate([self.pos, yaw_quaternion(self.yaw)])
 
 
 class TargetTrack:
@@ -213,6 +213,10 @@ class TargetTrack:
         if self.pos is None:
             low = points[:, 2] < 2 * CUBE_HALF  # lying on the table, not a red cube
             self.pos = disc_centre(points[low & self.colour(colours)])
+
+    def entry(self) -> Vec | None:
+        """Its position, as the state observations' `goal_pos` (None: not seen yet)."""
+        return self.pos
 
 
 Track = CubeTrack | TargetTrack
@@ -239,15 +243,15 @@ class Eyes:
     def __init__(self, env_id: str) -> None:
         self.tracks = TRACKS[env_id]() if env_id in TRACKS else {}
 
-    def __call__(self, obs: Observation) -> Observation:
-        """The observation with the objects' poses (and a seen goal) added under `extra`."""
+    def __call__(self, obs: Observation) -> Observation | None:
+        """The observation with the objects' poses (and the goal) added under `extra`; None
+        while something has not been seen yet."""
         hand = Hand.of(obs)
         points, colours = scene_points(obs)
-        extra = dict(obs["extra"])
+        entries = {}
         for key, track in self.tracks.items():
             track.update(points, colours, hand)
-            if isinstance(track, CubeTrack):
-                extra[key] = track.pose()
-            elif track.pos is not None:
-                extra[key] = track.pos
-        return {**obs, "extra": extra}
+            entries[key] = track.entry()
+        if any(entry is None for entry in entries.values()):
+            return None
+        return {**obs, "extra": {**obs["extra"], **entries}}

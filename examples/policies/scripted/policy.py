@@ -551,7 +551,7 @@ class ScriptedPolicy(Policy):
     def setup(self, spec: TaskSpec) -> None:
         """Remember the task and pick its state machine (and its eyes, on the visual track)."""
         super().setup(spec)
-        self._make_eyes: Callable[[str], Callable[[Observation], Observation]] | None = None
+        self._make_eyes: Callable[[str], Callable[[Observation], Observation | None]] | None = None
         supported = spec.control_mode == CONTROL_MODE
         if spec.obs_mode != OBS_MODE:
             # No object poses: find the objects in the camera's view (perception.py). Imported
@@ -562,7 +562,7 @@ class ScriptedPolicy(Policy):
             self._make_eyes = Eyes
         self._make_skill = SKILLS.get(spec.env_id) if supported else None
         self._skill: Skill | None = None
-        self._eyes: Callable[[Observation], Observation] | None = None
+        self._eyes: Callable[[Observation], Observation | None] | None = None
 
     def reset(self, obs: Observation, info: dict[str, Any]) -> None:
         """Start a fresh state machine for the new episode."""
@@ -574,7 +574,11 @@ class ScriptedPolicy(Policy):
         low, high = self.spec.action_low, self.spec.action_high
         if self._skill is None or low.shape != (7,):
             return self.safe_action()
-        action = self._skill(obs if self._eyes is None else self._eyes(obs))
+        if self._eyes is not None:
+            obs = self._eyes(obs)
+            if obs is None:  # an object out of sight, and never seen: wait for a view
+                return self.safe_action()
+        action = self._skill(obs)
         return np.clip(action, low, high).astype(low.dtype)
 
     def safe_action(self) -> np.ndarray:
