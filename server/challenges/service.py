@@ -123,6 +123,8 @@ def try_out(suite: Suite, options: ChallengeOptions) -> tuple[Suite, list[str]]:
         update["video_conditions"] = filmed and tuple(c for c in filmed if c in options.conditions)
         plural = "s" if len(kept) > 1 else ""
         narrowed.append(f"only the condition{plural} {', '.join(options.conditions)}")
+    if not narrowed:
+        return suite, []
     if not tasks or not update.get("conditions", True):
         raise Invalid("a try-out keeps at least one task and one condition")
     return Suite.model_validate({**suite.model_dump(), **update}), narrowed
