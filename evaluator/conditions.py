@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from evaluator.observation import ObservationKeys
 from evaluator.suite import ActionDelay, Condition, LowFreq, ObsNoise
 
 Observation = Any
@@ -27,8 +28,10 @@ def map_arrays(obs: Observation, fn: Any) -> Observation:
 class ConditionRuntime:
     """Applies one condition to an episode: env settings, step limit and observation stream."""
 
-    def __init__(self, condition: Condition) -> None:
+    def __init__(self, condition: Condition, *, keys: ObservationKeys | None = None) -> None:
         self.condition = condition
+        self.keys = keys or ObservationKeys(None)
+        """The entries of each observation the policy may see; the rest is dropped first."""
         self._params = condition.params
         self._sigma = self._params.sigma if isinstance(self._params, ObsNoise) else 0.0
         self._rng = np.random.default_rng(0)
@@ -59,12 +62,16 @@ class ConditionRuntime:
         """Start an episode; returns what the policy sees of the first observation."""
         self._rng = np.random.default_rng([seed, 0x5EED])
         self._history.clear()
+        first_obs = self.keys.observation(first_obs)
         if isinstance(self._params, ActionDelay):
             self._history.extend([first_obs] * (self._params.steps + 1))
         return self.observe(first_obs, fresh=False)
 
     def observe(self, obs: Observation, *, fresh: bool = True) -> Observation:
-        """What the policy sees, given the environment's latest observation."""
+        """What the policy sees, given the environment's latest observation (`fresh`: not
+        seen before, so not yet narrowed to the keys the policy may see)."""
+        if fresh:
+            obs = self.keys.observation(obs)
         if isinstance(self._params, ActionDelay):
             if fresh:
                 self._history.append(obs)

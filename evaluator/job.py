@@ -69,7 +69,7 @@ class EvaluationJob(BaseModel):
                 raise SuiteError(f"task {env_id!r} has no seeds")
         names = self.conditions or tuple(c.name for c in suite.conditions)
         runs = [
-            task_run(task, suite.condition(name), self.seeds[task.env_id])
+            task_run(suite, task, suite.condition(name), self.seeds[task.env_id])
             for name in names
             for task in suite.tasks
             if task.env_id in self.seeds

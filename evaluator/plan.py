@@ -12,6 +12,7 @@ from evaluator.suite import (
     ActionChunks,
     Condition,
     Limits,
+    ObsMode,
     PolicyResources,
     Suite,
     SuiteError,
@@ -32,6 +33,26 @@ class TaskRun(BaseModel):
     max_episode_steps: int = Field(ge=1)
     condition: Condition
     seeds: tuple[int, ...]
+    instruction: str = ""
+    observation_keys: tuple[str, ...] | None = None
+    """The observation entries the policy may see (None: all)."""
+
+
+def task_run(suite: Suite, task: TaskConfig, condition: Condition, seeds: Sequence[int]) -> TaskRun:
+    """A suite's task under one of its conditions, on these seeds (an `obs_mode` condition
+    shows the task through another observation mode)."""
+    params = condition.params
+    return TaskRun(
+        env_id=task.env_id,
+        obs_mode=params.obs_mode if isinstance(params, ObsMode) else task.obs_mode,
+        control_mode=task.control_mode,
+        sim_backend=task.sim_backend,
+        max_episode_steps=task.max_episode_steps,
+        condition=condition,
+        seeds=tuple(seeds),
+        instruction=task.instruction,
+        observation_keys=suite.observation_keys,
+    )
 
 
 class EvaluationPlan(BaseModel):
@@ -100,6 +121,7 @@ def build_plan(
     suite.phase(phase)
     runs = [
         task_run(
+            suite,
             task,
             condition,
             phase_seeds(
@@ -120,19 +142,6 @@ def build_plan(
         videos=max(recorded, 1) if record_video else recorded,
         # Asked for on the command line: every condition, whatever the suite limits it to.
         video_conditions=None if record_video else suite.video_conditions,
-    )
-
-
-def task_run(task: TaskConfig, condition: Condition, seeds: Sequence[int]) -> TaskRun:
-    """A suite's task under one of its conditions, on these seeds."""
-    return TaskRun(
-        env_id=task.env_id,
-        obs_mode=task.obs_mode,
-        control_mode=task.control_mode,
-        sim_backend=task.sim_backend,
-        max_episode_steps=task.max_episode_steps,
-        condition=condition,
-        seeds=tuple(seeds),
     )
 
 

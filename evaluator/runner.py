@@ -16,6 +16,7 @@ from evaluator.channel import PolicyChannel, RemoteChannel
 from evaluator.conditions import ConditionRuntime
 from evaluator.endpoint import PolicyEndpoint, PolicyFailure, PolicyRaised, Stopped
 from evaluator.episode import run_episode
+from evaluator.observation import ObservationKeys
 from evaluator.plan import EvaluationPlan, TaskRun
 from evaluator.results import Abort, EpisodeResult, FailureKind, Video
 from evaluator.sim import (
@@ -95,7 +96,10 @@ def task_spec(
         "control_freq": control_freq(env),
         "max_episode_steps": step_limit,
         "action_space": {"low": low, "high": high},
-        "observation_space": describe_space(env.unwrapped.single_observation_space),
+        "observation_space": ObservationKeys(run.observation_keys).space(
+            describe_space(env.unwrapped.single_observation_space)
+        ),
+        "instruction": run.instruction,
         "action_chunks": {"max_length": chunks.max_length, "execute": chunks.executed},
     }
 
@@ -114,7 +118,7 @@ def open_task(
 ) -> TaskEnv:
     """Build the environment for these episodes of a task run (rendering if one is filmed)."""
     run = plan.runs[run_index]
-    runtime = ConditionRuntime(run.condition)
+    runtime = ConditionRuntime(run.condition, keys=ObservationKeys(run.observation_keys))
     record = options.video_dir is not None and any(plan.records(run, i) for i, _ in episodes)
     env = make_env(run, runtime, render=record, frame_size=plan.video_size)
     return TaskEnv(env, runtime, record)

@@ -13,6 +13,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 SUITES_DIR = Path(__file__).resolve().parent.parent / "suites"
 SEED_LIMIT = 1 << 31  # seeds are non-negative int32, as ManiSkill and numpy expect
+OBS_MODE_PATTERN = r"^[a-z_]+(\+[a-z_]+)*$"  # ManiSkill's modes: state_dict, rgbd, rgb+depth...
+FLAT_OBS_MODES = frozenset({"state"})  # one array, no named entries
+# An observation entry's path: names joined by "/", where "*" in a name matches any characters.
+OBS_KEY_PATTERN = r"^[A-Za-z0-9_*\-]+(/[A-Za-z0-9_*\-]+)*$"
 
 
 class SuiteError(ValueError):
@@ -27,11 +31,14 @@ class TaskConfig(_Strict):
     """One ManiSkill task as the suite runs it."""
 
     env_id: str = Field(pattern=r"^[A-Za-z0-9_\-]+-v\d+$")
-    obs_mode: str = "state_dict"
+    obs_mode: str = Field(default="state_dict", pattern=OBS_MODE_PATTERN)
     control_mode: str = "pd_ee_delta_pose"
     sim_backend: Literal["physx_cpu", "physx_cuda"] = "physx_cpu"
     episodes: int = Field(default=50, ge=1, le=10_000)
     max_episode_steps: int = Field(ge=1, le=100_000)
+    instruction: str = Field(default="", max_length=1000)
+    """What the task asks, in words, for policies that take a language instruction; it reaches
+    the policy in the task spec. Empty: none (and not part of the hash)."""
 
 
 class PublicSeeds(_Strict):
@@ -79,7 +86,16 @@ class LowFreq(_Strict):
     control_freq: int = Field(default=5, ge=1, le=100)
 
 
-ConditionParams = Annotated[Nominal | ObsNoise | ActionDelay | LowFreq, Field(discriminator="kind")]
+class ObsMode(_Strict):
+    """The same scenes seen through another observation mode (`pointcloud` instead of `rgbd`)."""
+
+    kind: Literal["obs_mode"] = "obs_mode"
+    obs_mode: str = Field(pattern=OBS_MODE_PATTERN)
+
+
+ConditionParams = Annotated[
+    Nominal | ObsNoise | ActionDelay | LowFreq | ObsMode, Field(discriminator="kind")
+]
 
 
 class Condition(_Strict):
@@ -160,6 +176,11 @@ class Suite(_Strict):
     action_chunks: ActionChunks = NO_CHUNKS
     """Whether a policy may answer with several actions at once (docs/protocol.md, "Action
     chunks"); the default takes one action per call, as protocol 1 does."""
+    observation_keys: tuple[Annotated[str, Field(pattern=OBS_KEY_PATTERN)], ...] | None = None
+    """The observation entries a policy sees, as paths such as `agent/qpos` or
+    `sensor_data/*/rgb` (an entry named by a path comes whole, with everything below it); the
+    evaluator drops every other entry before the policy, or its task spec, sees it. None: all
+    that the task's obs_mode gives."""
     ignore_terminations: bool = False
     """As ManiSkill's evaluation does: every episode runs to its step limit, whatever the task
     signals, so that both `success_once` and `success_at_end` are measured. False ends an
@@ -205,6 +226,19 @@ class Suite(_Strict):
             )
         return self
 
+    @model_validator(mode="after")
+    def _keys_select_from_dicts(self) -> Suite:
+        if self.observation_keys is None:
+            return self
+        modes = {t.obs_mode for t in self.tasks}
+        modes |= {c.params.obs_mode for c in self.conditions if isinstance(c.params, ObsMode)}
+        if FLAT_OBS_MODES & modes:
+            raise ValueError(
+                f"observation_keys select entries of dict observations; obs_mode "
+                f"{', '.join(sorted(FLAT_OBS_MODES & modes))} gives one flat array"
+            )
+        return self
+
     def task(self, env_id: str) -> TaskConfig:
         """The task named `env_id`, or SuiteError listing the suite's tasks."""
         for task in self.tasks:
@@ -234,12 +268,17 @@ class Suite(_Strict):
         for name in _HASHED_WHEN_SET:  # suites that do not use a newer setting keep their hash
             if getattr(self, name) == type(self).model_fields[name].default:
                 del content[name]
+        for task in content["tasks"]:
+            for name in _TASK_HASHED_WHEN_SET:
+                if task[name] == TaskConfig.model_fields[name].default:
+                    del task[name]
         canonical = json.dumps(content, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
 
 
 # Settings added after suites were first published: part of the hash only when not the default.
-_HASHED_WHEN_SET = ("ignore_terminations", "action_chunks")
+_HASHED_WHEN_SET = ("ignore_terminations", "action_chunks", "observation_keys")
+_TASK_HASHED_WHEN_SET = ("instruction",)
 RECORDING = ("videos", "video_conditions", "video_size", "video_fps")
 """The settings that say what is filmed and how: they change no result, so no hash."""
 

@@ -29,6 +29,10 @@ class ChallengeOptions:
     closes: dict[str, datetime] = field(default_factory=dict)
     episodes: int | None = None
     """Override every task's episode count (a quick try-out; the stored suite says so)."""
+    tasks: tuple[str, ...] | None = None
+    """Only these of the suite's tasks (a try-out, as `episodes`; None: all)."""
+    conditions: tuple[str, ...] | None = None
+    """Only these of the suite's conditions (a try-out, as `episodes`; None: all)."""
     teams: bool | None = None
     """Count quotas and leaderboard rows per team (None: as it is; off for a new challenge)."""
 
@@ -44,12 +48,9 @@ def load_challenge(
         raise Invalid("quotas must be at least 1")
     text = Path(suite_ref).read_text() if Path(suite_ref).exists() else None
     suite_yaml = text if text is not None else _bundled_text(suite_ref)
-    if options.episodes is not None:
-        if options.episodes < 1:
-            raise Invalid("episodes must be at least 1")
-        tasks = tuple(t.model_copy(update={"episodes": options.episodes}) for t in suite.tasks)
-        suite = suite.model_copy(update={"tasks": tasks})
-        header = f"# {suite.name} with {options.episodes} episodes per task (a try-out)\n"
+    suite, narrowed = try_out(suite, options)
+    if narrowed:
+        header = f"# {suite.name} with {', '.join(narrowed)} (a try-out)\n"
         suite_yaml = header + yaml.safe_dump(suite.model_dump(mode="json"), sort_keys=False)
 
     challenge = db.scalar(
@@ -99,6 +100,34 @@ def set_team_mode(db: DB, *, slug: str, on: bool) -> Challenge:
         db.flush()
         rebuild(db, challenge_id=challenge.id)
     return challenge
+
+
+def try_out(suite: Suite, options: ChallengeOptions) -> tuple[Suite, list[str]]:
+    """The suite narrowed to the options' tasks, conditions and episode count, and what was
+    narrowed, in words (nothing: the suite as it is)."""
+    narrowed: list[str] = []
+    tasks = suite.tasks
+    if options.tasks is not None:
+        tasks = tuple(suite.task(name) for name in options.tasks)  # SuiteError names the tasks
+        narrowed.append(f"only the task{'s' if len(tasks) > 1 else ''} {', '.join(options.tasks)}")
+    if options.episodes is not None:
+        if options.episodes < 1:
+            raise Invalid("episodes must be at least 1")
+        tasks = tuple(t.model_copy(update={"episodes": options.episodes}) for t in tasks)
+        narrowed.append(f"{options.episodes} episodes per task")
+    update: dict[str, object] = {"tasks": tasks}
+    if options.conditions is not None:
+        kept = tuple(suite.condition(name) for name in options.conditions)
+        filmed = suite.video_conditions
+        update["conditions"] = kept
+        update["video_conditions"] = filmed and tuple(c for c in filmed if c in options.conditions)
+        plural = "s" if len(kept) > 1 else ""
+        narrowed.append(f"only the condition{plural} {', '.join(options.conditions)}")
+    if not narrowed:
+        return suite, []
+    if not tasks or not update.get("conditions", True):
+        raise Invalid("a try-out keeps at least one task and one condition")
+    return Suite.model_validate({**suite.model_dump(), **update}), narrowed
 
 
 def _bundled_text(ref: str | Path) -> str:

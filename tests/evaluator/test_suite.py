@@ -194,3 +194,93 @@ def test_a_service_without_enough_gpus_says_why_it_cannot_run_the_policy():
     assert "2 GPUs per policy, and this service has at most 1" in str(
         PolicyResources(gpus=2).refusal(available=1)
     )
+
+
+VISUAL_KEYS = (
+    "agent/qpos",
+    "agent/qvel",
+    "extra/tcp_pose",
+    "extra/goal_pos",
+    "sensor_param",
+    "sensor_data/*/rgb",
+    "sensor_data/*/depth",
+    "pointcloud/xyzw",
+    "pointcloud/rgb",
+)
+
+
+def test_the_visual_suite_runs_the_core_tasks_on_cameras_with_an_instruction_each():
+    suite = load_suite("maniskill-visual")
+    assert {t.env_id for t in suite.tasks} == CORE_TASKS
+    assert {t.obs_mode for t in suite.tasks} == {"rgbd"}
+    assert all(t.instruction for t in suite.tasks)
+    assert suite.observation_keys == VISUAL_KEYS
+    assert [c.name for c in suite.conditions] == [
+        "nominal",
+        "pointcloud",
+        "action_delay",
+        "low_freq",
+    ]
+    assert set(suite.phases) == {"dev", "test"}
+
+
+def test_an_obs_mode_condition_shows_the_tasks_through_another_observation_mode():
+    plan = build_plan(load_suite("maniskill-visual"), "dev", tasks=["PickCube-v1"], episodes=1)
+    assert {r.condition.name: r.obs_mode for r in plan.runs} == {
+        "nominal": "rgbd",
+        "pointcloud": "pointcloud",
+        "action_delay": "rgbd",
+        "low_freq": "rgbd",
+    }
+    assert {r.instruction for r in plan.runs} == {
+        load_suite("maniskill-visual").tasks[0].instruction
+    }
+    assert {r.observation_keys for r in plan.runs} == {VISUAL_KEYS}
+
+
+def test_the_job_a_pod_runs_keeps_the_instruction_keys_and_obs_mode(tmp_path: Path):
+    from evaluator.job import evaluation_job
+
+    path = Path(__file__).parents[2] / "suites" / "maniskill-visual.yaml"
+    plan = build_plan(load_suite(path), "dev", tasks=["PushCube-v1"], episodes=2)
+    assert evaluation_job(plan, suite_yaml=path.read_text()).plan().runs == plan.runs
+
+
+def test_an_instruction_and_observation_keys_enter_the_hash_only_when_set():
+    suite = load_suite("maniskill-core")
+    tasks = suite.tasks
+    worded = (tasks[0].model_copy(update={"instruction": "Pick it up."}), *tasks[1:])
+    assert suite.model_copy(update={"tasks": worded}).sha256() != CORE_SUITE_SHA256
+    assert suite.model_copy(update={"observation_keys": ("agent",)}).sha256() != CORE_SUITE_SHA256
+    unworded = (tasks[0].model_copy(update={"instruction": ""}), *tasks[1:])
+    assert suite.model_copy(update={"tasks": unworded}).sha256() == CORE_SUITE_SHA256
+
+
+@pytest.mark.parametrize(
+    ("obs_mode", "extra", "message"),
+    [
+        ("state", "observation_keys: [agent/qpos]", "obs_mode state gives one flat array"),
+        (
+            "rgbd",
+            "conditions: [{name: s, params: {kind: obs_mode, obs_mode: state}}]\n"
+            "observation_keys: [agent/qpos]",
+            "obs_mode state gives one flat array",
+        ),
+        ("rgbd", "observation_keys: ['agent//qpos']", "observation_keys.0\n.*pattern"),
+        (
+            "rgbd",
+            "conditions: [{name: n, params: {kind: obs_mode, obs_mode: 'point cloud'}}]",
+            "obs_mode\n.*pattern",
+        ),
+    ],
+)
+def test_observation_settings_that_cannot_work_are_refused(
+    tmp_path: Path, obs_mode: str, extra: str, message: str
+):
+    body = (
+        "name: x\nversion: 1\n"
+        f"tasks: [{{env_id: A-v1, max_episode_steps: 5, obs_mode: {obs_mode}}}]\n"
+        f"phases: {{dev: {{seeds: {{kind: public}}}}}}\n{extra}\n"
+    )
+    with pytest.raises(SuiteError, match=message):
+        load_suite(write_suite(tmp_path, body))

@@ -21,7 +21,9 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.mark.timeout(1500)  # both examples, six recorded videos each, on a busy 2-core machine
+# Both examples on the core track (six recorded videos each), the scripted one on the visual
+# track (two), on a busy 2-core machine.
+@pytest.mark.timeout(1500)
 def test_demo_evaluates_the_examples_and_is_idempotent(tmp_path: Path) -> None:
     require_tool("docker-registry")
     registry = f"127.0.0.1:{free_port()}"
@@ -43,13 +45,15 @@ def test_demo_evaluates_the_examples_and_is_idempotent(tmp_path: Path) -> None:
     ]
     first = subprocess.run(command, env=env, capture_output=True, text=True, timeout=1400)
     assert first.returncode == 0, first.stderr[-3000:]
-    assert "submitted local:scripted" in first.stderr
+    assert "submitted local:scripted on maniskill-core" in first.stderr
+    assert "submitted local:scripted on maniskill-visual" in first.stderr  # both tracks
     assert "succeeded" in first.stderr
     # Without a terminal, progress is a few lines (a quarter each), not one per episode.
     assert "None" not in first.stderr
-    assert first.stderr.count(" episodes (") <= 2 * 3
+    assert first.stderr.count(" episodes (") <= 3 * 3
     assert "maniskill-core leaderboard" in first.stdout
-    assert first.stdout.count("baseline") == 2
+    assert "maniskill-visual leaderboard" in first.stdout
+    assert first.stdout.count("baseline") == 3  # scripted and random; scripted on cameras
     assert (tmp_path / "demo-password").stat().st_mode & 0o077 == 0
     # A participant's own policy: the registry it started, and the commands that reach it.
     assert f"registry: {registry}" in first.stderr
@@ -58,7 +62,7 @@ def test_demo_evaluates_the_examples_and_is_idempotent(tmp_path: Path) -> None:
     second = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
     assert second.returncode == 0, second.stderr[-3000:]
     assert "submitted" not in second.stderr  # finished work is reused
-    assert second.stdout.count("baseline") == 2
+    assert second.stdout.count("baseline") == 3
 
 
 CRASHER = "import sys\nprint('cannot load weights.pt', file=sys.stderr)\nsys.exit(3)\n"
@@ -94,8 +98,9 @@ def test_a_failed_demo_says_what_failed_and_what_to_do_next(tmp_path: Path) -> N
     assert "leaderboard" not in done.stdout  # no empty table
     err = done.stderr
     assert "none of the example policies succeeded" in err
-    for image in ("local:scripted", "local:random"):
-        assert f"({image}) failed: " in err
+    for track in ("scripted on maniskill-core", "random on maniskill-core"):
+        assert f"(local:{track}) failed: " in err
+    assert "(local:scripted on maniskill-visual) failed: " in err
     assert "exit code 3" in err  # the examples' own reasons
     assert "cannot load weights.pt" in err  # the end of their logs
     assert "manieval evaluate --policy examples/policies/random" in err

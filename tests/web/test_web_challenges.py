@@ -8,6 +8,7 @@ from datetime import UTC, datetime, timedelta
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
+from server.challenges.service import load_challenge
 from server.leaderboard.challenge_page import ScoreHistory
 from server.leaderboard.service import record_points
 from server.models import Challenge, Phase
@@ -119,3 +120,22 @@ def test_score_history_keeps_only_records_and_follows_the_board_version(
     assert chart is not None
     assert len(chart.markers) == 2
     assert history.chart(db, dev) is chart  # same version: cached
+
+
+def test_the_demos_visual_challenge_page_says_what_it_runs_and_what_a_policy_sees(
+    client: TestClient, db: Session
+) -> None:
+    from manieval.demo import VISUAL, challenge_options
+
+    load_challenge(db, VISUAL.challenge, challenge_options(VISUAL, 2), seed_secret="s" * 32)
+    db.commit()
+    html = client.get(f"/challenges/{VISUAL.challenge}").text
+    assert "In this demo</strong> the visual track runs small" in html
+    tasks = html.split('id="tasks-heading"')[1].split("</section>")[0]
+    assert re.findall(r'<th scope="row">([^<]+)</th>', tasks) == ["PickCube-v1", "PushCube-v1"]
+    assert '<td class="numeric">1</td>' in tasks  # one episode each
+    assert "Pick up the red cube and hold it still at the goal position." in tasks
+    rules = html.split('id="rules-heading"')[1].split("</section>")[0]
+    assert "<strong>nominal</strong> (nominal)." in rules  # the only condition it runs
+    assert "<code>sensor_data/*/rgb</code>" in rules
+    assert "<code>extra/tcp_pose</code>" in rules

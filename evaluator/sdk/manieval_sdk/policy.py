@@ -40,6 +40,9 @@ class TaskSpec:
     observation_space: dict[str, Any] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
     action_chunks: ActionChunks = field(default_factory=ActionChunks)
+    instruction: str = ""
+    """What the task asks, in words (e.g. "Pick up the red cube and move it to the goal."),
+    for policies that take a language instruction; empty when the suite gives none."""
 
     @property
     def action_shape(self) -> tuple[int, ...]:

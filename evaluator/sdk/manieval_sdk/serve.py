@@ -68,6 +68,7 @@ def task_spec(fields: dict[str, Any]) -> TaskSpec:
         action_chunks=ActionChunks(
             max_length=int(chunks.get("max_length", 1)), execute=int(chunks.get("execute", 1))
         ),
+        instruction=str(fields.get("instruction", "")),
     )
 
 

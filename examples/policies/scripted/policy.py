@@ -549,21 +549,35 @@ class ScriptedPolicy(Policy):
     """Hand-written state machines per task; a still, open gripper for unknown tasks."""
 
     def setup(self, spec: TaskSpec) -> None:
-        """Remember the task and pick its state machine."""
+        """Remember the task and pick its state machine (and its eyes, on the visual track)."""
         super().setup(spec)
-        supported = spec.obs_mode == OBS_MODE and spec.control_mode == CONTROL_MODE
+        self._make_eyes: Callable[[str], Callable[[Observation], Observation | None]] | None = None
+        supported = spec.control_mode == CONTROL_MODE
+        if spec.obs_mode != OBS_MODE:
+            # No object poses: find the objects in the camera's view (perception.py). Imported
+            # here, so that this file alone still runs on the state track.
+            from perception import TRACKS, Eyes
+
+            supported = supported and spec.env_id in TRACKS
+            self._make_eyes = Eyes
         self._make_skill = SKILLS.get(spec.env_id) if supported else None
         self._skill: Skill | None = None
+        self._eyes: Callable[[Observation], Observation | None] | None = None
 
     def reset(self, obs: Observation, info: dict[str, Any]) -> None:
         """Start a fresh state machine for the new episode."""
         self._skill = self._make_skill(self.spec) if self._make_skill else None
+        self._eyes = self._make_eyes(self.spec.env_id) if self._make_eyes else None
 
     def act(self, obs: Observation) -> np.ndarray:
         """Next action, clipped to the action bounds."""
         low, high = self.spec.action_low, self.spec.action_high
         if self._skill is None or low.shape != (7,):
             return self.safe_action()
+        if self._eyes is not None:
+            obs = self._eyes(obs)
+            if obs is None:  # an object out of sight, and never seen: wait for a view
+                return self.safe_action()
         action = self._skill(obs)
         return np.clip(action, low, high).astype(low.dtype)
 
