@@ -7,11 +7,9 @@ The bridge over a real WebSocket, in the policy image: tests/worker/test_openpi_
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -20,39 +18,12 @@ import pytest
 from manieval_sdk import TaskSpec
 from manieval_sdk.openpi import OpenpiBridge, load_mapping
 from manieval_sdk.openpi.connection import INSTALL_HINT, ServerError, client_modules
+from tests.evaluator.openpi_reference import InProcess, example_server
 from tests.evaluator.test_openpi_mapping import EXAMPLE, rgbd_obs, space
 
 
-def example_server() -> ModuleType:
-    """The example's serve_policy.py, whose policy needs numpy alone."""
-    spec = importlib.util.spec_from_file_location("serve_policy", EXAMPLE / "serve_policy.py")
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-class InProcess:
-    """A connection to the example's policy in this process, as a WebSocket would carry it."""
-
-    def __init__(self, *, fail_on_call: int | None = None) -> None:
-        server = example_server()
-        self.metadata = server.METADATA
-        self.policy = server.RedSeeker(fail_on_call=fail_on_call)
-        self.broken = False
-        self.requests: list[dict[str, Any]] = []
-
-    def infer(self, request: dict[str, Any]) -> Any:
-        self.requests.append(request)
-        try:
-            return self.policy.infer(request)
-        except Exception as exc:  # the server's text frame and close 1011
-            self.broken = True
-            raise ServerError(f"the policy server failed: {type(exc).__name__}: {exc}") from None
-
-    def close(self) -> None:
-        self.broken = True
+def in_process(*, fail_on_call: int | None = None) -> InProcess:
+    return InProcess(example_server(EXAMPLE), fail_on_call=fail_on_call)
 
 
 def pick_cube_spec(**extra: Any) -> TaskSpec:
@@ -76,7 +47,7 @@ def bridge_to(connections: list[InProcess]) -> OpenpiBridge:
 
 
 def test_the_bridge_sends_the_mapped_request_and_answers_the_servers_actions() -> None:
-    server = InProcess()
+    server = in_process()
     bridge = bridge_to([server])
     bridge.setup(pick_cube_spec(instruction="pick up the red cube"))
     obs = rgbd_obs()
@@ -94,7 +65,7 @@ def test_the_bridge_sends_the_mapped_request_and_answers_the_servers_actions() -
 
 
 def test_without_an_instruction_the_mappings_default_prompt_goes() -> None:
-    server = InProcess()
+    server = in_process()
     bridge = bridge_to([server])
     bridge.setup(pick_cube_spec())
     bridge.act(rgbd_obs())
@@ -102,7 +73,7 @@ def test_without_an_instruction_the_mappings_default_prompt_goes() -> None:
 
 
 def test_a_failed_request_fails_its_call_and_the_next_one_connects_again() -> None:
-    failing, fresh = InProcess(fail_on_call=2), InProcess()
+    failing, fresh = in_process(fail_on_call=2), in_process()
     bridge = bridge_to([failing, fresh])
     bridge.setup(pick_cube_spec())
     bridge.act(rgbd_obs())
@@ -113,7 +84,7 @@ def test_a_failed_request_fails_its_call_and_the_next_one_connects_again() -> No
 
 
 def test_a_server_that_cannot_be_reached_ends_the_policy() -> None:
-    def unreachable() -> InProcess:
+    def unreachable() -> InProcess:  # as OpenpiConnection.open says it
         raise ServerError("nothing answered on ws://127.0.0.1:8000 within 100 s")
 
     bridge = OpenpiBridge(load_mapping(EXAMPLE / "mapping.toml"), connect=unreachable)
@@ -122,7 +93,7 @@ def test_a_server_that_cannot_be_reached_ends_the_policy() -> None:
 
 
 def test_a_mapping_that_does_not_fit_the_task_fails_its_setup() -> None:
-    bridge = bridge_to([InProcess()])
+    bridge = bridge_to([in_process()])
     spec = pick_cube_spec()
     state_only = TaskSpec(**{**spec.__dict__, "obs_mode": "state_dict"})
     state_only.observation_space.pop("sensor_data")
