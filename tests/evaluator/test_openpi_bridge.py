@@ -53,15 +53,14 @@ def test_the_bridge_sends_the_mapped_request_and_answers_the_servers_actions() -
     obs = rgbd_obs()
     obs["sensor_data"]["base_camera"]["rgb"][:] = 0
     obs["sensor_data"]["base_camera"]["rgb"][:16, :16, 0] = 255  # red, top left
-    answer = np.asarray(bridge.act(obs))
+    chunk = np.asarray(bridge.act(obs))
     (request,) = server.requests
     assert request["observation/image"].shape == (96, 96, 3)  # the server's metadata size
     assert request["prompt"] == "pick up the red cube"
-    first = answer if answer.ndim == 1 else answer[0]
-    assert first.shape == (7,)  # the server's 8 values cut to the task's 7
-    assert first[0] > 0
-    assert first[1] > 0
-    assert first[6] == 1.0  # gripper open
+    assert chunk.shape == (8, 7)  # the server's chunk, its 8 values cut to the task's 7
+    assert chunk[0, 0] > 0  # towards the top left
+    assert chunk[0, 1] > 0
+    assert chunk[0, 6] == 1.0  # gripper open
 
 
 def test_without_an_instruction_the_mappings_default_prompt_goes() -> None:

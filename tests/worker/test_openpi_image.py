@@ -16,7 +16,7 @@ from evaluator.evaluation import evaluate
 from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import EvaluationResult
 from evaluator.sources import LocalDirectory
-from evaluator.suite import Limits, Phase, PublicSeeds, Suite, TaskConfig
+from evaluator.suite import ActionChunks, Limits, Phase, PublicSeeds, Suite, TaskConfig
 from tests.evaluator.conftest import episode_records
 from tests.server.registry_fixture import fixture_registry  # noqa: F401 - pytest fixture
 from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
@@ -34,13 +34,15 @@ pytestmark = [pytest.mark.sim, pytest.mark.long]
 REFERENCE = Path(__file__).resolve().parents[1] / "evaluator" / "openpi_reference.py"
 BRIDGE = ["python3", "-m", "manieval_sdk.openpi", "--mapping", "/opt/policy/mapping.toml"]
 SERVICE = f"test-session-{uuid.uuid4().hex[:8]}"
-# The visual track's shape, kept small: PickCube-v1 seen by its camera (rgbd), short episodes.
+# The visual track's shape, kept small: PickCube-v1 seen by its camera (rgbd), short episodes;
+# and chunks of the server's length, all executed: the server is asked at steps 0 and 8.
 VISUAL = Suite(
     name="openpi-visual",
     version=1,
     tasks=(TaskConfig(env_id="PickCube-v1", obs_mode="rgbd", max_episode_steps=12, episodes=2),),
     phases={"dev": Phase(seeds=PublicSeeds(start=0))},
     limits=Limits(connect_timeout_s=60, first_call_timeout_s=60, call_timeout_s=10, budget_s=300),
+    action_chunks=ActionChunks(max_length=8),
 )
 
 
@@ -117,15 +119,17 @@ def test_a_request_the_server_fails_fails_its_episode_with_the_servers_message(
     openpi_image: str,
     ids: tuple[int, int],
 ) -> None:
-    server = "python3 /opt/policy/serve_policy.py --port 8000 --fail-on-call 3"
+    server = "python3 /opt/policy/serve_policy.py --port 8000 --fail-on-call 2"
     image = published(policy_images, openpi_image, "openpi-fails", *BRIDGE, "--command", server)
     result = in_container(image, ids, container_engine)
     assert result.status == "completed", result.abort
     episodes = [e for c in result.conditions for t in c.tasks for e in t.episodes]
-    assert [e.failure for e in episodes] == ["policy_error", None]
+    assert [(e.failure, e.steps) for e in episodes] == [
+        ("policy_error", 8),  # the first chunk ran; the server failed the second request
+        (None, 12),  # the bridge connected again: the next episode ran whole
+    ]
     reason = episodes[0].failure_reason or ""
-    assert "the policy server failed: RuntimeError: inference 3 fails" in reason, reason
-    assert episodes[1].steps == VISUAL.tasks[0].max_episode_steps  # connected again, ran whole
+    assert "the policy server failed: RuntimeError: inference 2 fails" in reason, reason
 
 
 def test_a_server_that_exits_at_start_stops_the_evaluation_with_its_output(

@@ -67,12 +67,9 @@ class OpenpiBridge(Policy):
     def act(self, obs: Observation) -> np.ndarray:
         request = build_request(obs, self.mapping, sizes=self._sizes, prompt=self._prompt)
         answer = self._connected().infer(request)
-        # The chunk as the server gave it (at most `horizon`): the SDK sends the evaluator
-        # the actions it executes (spec.action_chunks).
-        chunk = action_chunk(answer, self.mapping.actions, self.spec.action_shape)
-        if not hasattr(self.spec, "action_chunks"):  # TODO(rebase): until chunks are on main
-            return np.asarray(chunk[0])
-        return chunk
+        # The chunk as the server gave it (at most `horizon`): the SDK sends the evaluator the
+        # actions it executes (spec.action_chunks), the first alone where it takes no chunks.
+        return action_chunk(answer, self.mapping.actions, self.spec.action_shape)
 
     def close(self) -> None:
         """Close the connection and stop the server this bridge started."""
