@@ -8,7 +8,7 @@ import os
 import shutil
 import subprocess
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +19,7 @@ from server.kit.settings import Settings
 from tests.cli.conftest import REPO, LiveServer, Participant, free_port, running_server
 from tests.server.registry_fixture import require_tool
 from tests.worker.container_fixtures import BASE_BUILD, BASE_IMAGE, CONTAINERS_CONF, require_podman
+from tests.worker.openpi_image import build_openpi_image
 
 TEMPLATE = REPO / "examples" / "policy-template"
 SDK = REPO / "evaluator" / "sdk" / "manieval_sdk"
@@ -37,6 +38,24 @@ limits:
   connect_timeout_s: 60
   first_call_timeout_s: 60
   call_timeout_s: 5
+  budget_s: 300
+"""
+# The visual track, kept small: PickCube-v1 seen by its camera (rgbd), one short episode.
+VISUAL_CHALLENGE = "push-visual"
+VISUAL_SUITE = """\
+name: push-visual
+version: 1
+description: The visual track in small.
+tasks:
+  - {env_id: PickCube-v1, obs_mode: rgbd, max_episode_steps: 12, episodes: 1}
+phases:
+  dev: {description: Public seeds., seeds: {kind: public, start: 0}}
+conditions:
+  - {name: nominal, params: {kind: nominal}}
+limits:
+  connect_timeout_s: 60
+  first_call_timeout_s: 60
+  call_timeout_s: 10
   budget_s: 300
 """
 
@@ -93,10 +112,15 @@ def data_with_challenge(
 
 
 @contextmanager
-def embedded_service(work: Path) -> Iterator[Embedded]:
-    """`manieval serve` on embedded defaults: it starts the registry and Podman's API."""
+def embedded_service(
+    work: Path, *, more_challenges: Mapping[str, str] | None = None
+) -> Iterator[Embedded]:
+    """`manieval serve` on embedded defaults: it starts the registry and Podman's API. Its
+    challenges: `push-tiny`, and `more_challenges` (name: suite text)."""
     build_base_image()
     options = ChallengeOptions(quota_per_day=50, quota_concurrent=3)
+    for name, text in (more_challenges or {}).items():
+        data_with_challenge(work, name, text, options)
     data, suite = data_with_challenge(work, "push-tiny", TINY_SUITE, options)
     registry = f"127.0.0.1:{free_port()}"
     extra = {
@@ -173,3 +197,10 @@ def build_template(embedded: Embedded, tag: str) -> Path:
     assert done.returncode == 0, done.stderr[-3000:]
     BUILT.append(tag)
     return context
+
+
+def build_openpi(embedded: Embedded, tag: str) -> None:
+    """The openpi server example's image, as its README builds it (cached layers)."""
+    env = {**os.environ, "CONTAINERS_CONF": str(CONTAINERS_CONF)}
+    build_openpi_image(env, embedded.work, tag=tag)
+    BUILT.append(tag)

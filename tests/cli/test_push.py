@@ -14,14 +14,24 @@ import httpx
 import pytest
 
 from tests.cli.conftest import Participant, free_port
-from tests.cli.push_support import CHALLENGE, TAG, Embedded, build_template, embedded_service
+from tests.cli.push_support import (
+    CHALLENGE,
+    TAG,
+    VISUAL_CHALLENGE,
+    VISUAL_SUITE,
+    Embedded,
+    build_openpi,
+    build_template,
+    embedded_service,
+)
 
 pytestmark = [pytest.mark.sim, pytest.mark.long]
 
 
 @pytest.fixture(scope="module")
 def embedded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Embedded]:
-    with embedded_service(tmp_path_factory.mktemp("push")) as service:
+    more = {VISUAL_CHALLENGE: VISUAL_SUITE}
+    with embedded_service(tmp_path_factory.mktemp("push"), more_challenges=more) as service:
         yield service
 
 
@@ -185,3 +195,26 @@ def test_another_users_image_cannot_be_submitted(embedded: Embedded) -> None:
     r = grace.run("submit", pinned, "-c", CHALLENGE, env=genv)
     assert r.exit_code == 16, r.output
     assert "grace/" in r.output
+
+
+def test_an_openpi_server_image_is_pushed_and_ranked_on_the_visual_track(
+    embedded: Embedded,
+) -> None:
+    olga, env = registered(embedded, "olga")
+    local = f"localhost/olga-openpi:{TAG}"
+    build_openpi(embedded, local)
+    r = olga.run("push", local, "-c", VISUAL_CHALLENGE, "--wait", "--json", env=env)
+    assert r.exit_code == 0, r.output
+    final = json.loads(r.stdout[r.stdout.index("{") :])
+    assert final["state"] == "succeeded", final
+    assert final["pinned_image"].startswith(f"{embedded.registry}/olga/olga-openpi@sha256:")
+    token = json.loads((olga.config_dir / "credentials.json").read_text())["token"]
+    with httpx.Client(base_url=embedded.server.url, timeout=30) as http:
+        episodes = http.get(
+            f"/api/v1/submissions/{final['id']}/episodes",
+            headers={"Authorization": f"Bearer {token}"},
+        ).json()["items"]
+        board = http.get(f"/api/v1/challenges/{VISUAL_CHALLENGE}/leaderboard").json()["items"]
+    # Every step answered by the server in the image, through the bridge.
+    assert [(e["failure"], e["steps"]) for e in episodes] == [(None, 12)], episodes
+    assert [(row["username"], row["submission_id"]) for row in board] == [("olga", final["id"])]

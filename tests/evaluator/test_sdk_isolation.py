@@ -20,6 +20,8 @@ import json, sys
 before = set(sys.modules)
 import manieval_sdk, manieval_sdk.policy, manieval_sdk.seeding, manieval_sdk.serve
 import manieval_sdk.wire
+# The openpi bridge too: openpi-client and websockets are imported when it connects, not before.
+import manieval_sdk.openpi, manieval_sdk.openpi.__main__, manieval_sdk.openpi.connection
 loaded = {name.partition(".")[0] for name in set(sys.modules) - before}
 print(json.dumps(sorted(loaded - set(sys.stdlib_module_names))))
 """

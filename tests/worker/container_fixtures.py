@@ -150,14 +150,21 @@ class PolicyImages:
 
     def publish(self, name: str, policy_source: str) -> str:
         """Build the template with this `policy.py`, push it; the image's pinned reference."""
+        return self.publish_built(
+            name,
+            f"FROM {TEMPLATE_IMAGE}\nCOPY policy.py /opt/policy/policy.py\n",
+            {"policy.py": policy_source},
+        )
+
+    def publish_built(self, name: str, dockerfile: str, files: dict[str, str] | None = None) -> str:
+        """Build this Dockerfile (with these files beside it), push it; its pinned reference."""
         if name in self.published:
             return self.published[name]
         context = self.work / name
         context.mkdir(exist_ok=True)
-        (context / "policy.py").write_text(policy_source)
-        (context / "Dockerfile").write_text(
-            f"FROM {TEMPLATE_IMAGE}\nCOPY policy.py /opt/policy/policy.py\n"
-        )
+        for file_name, text in (files or {}).items():
+            (context / file_name).write_text(text)
+        (context / "Dockerfile").write_text(dockerfile)
         local = self.local_tag(name)
         # --no-cache: a cache hit would hand back another session's image ID.
         self.engine.podman("build", "--quiet", "--no-cache", "--tag", local, str(context))
