@@ -13,13 +13,15 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import yaml
+
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
 from tests.cli.conftest import REPO, LiveServer, Participant, free_port, running_server
 from tests.server.registry_fixture import require_tool
 from tests.worker.container_fixtures import BASE_BUILD, BASE_IMAGE, CONTAINERS_CONF, require_podman
-from tests.worker.openpi_image import build_openpi_image
+from tests.worker.openpi_image import build_openpi_image, visual_track_in_small
 
 TEMPLATE = REPO / "examples" / "policy-template"
 SDK = REPO / "evaluator" / "sdk" / "manieval_sdk"
@@ -40,24 +42,11 @@ limits:
   call_timeout_s: 5
   budget_s: 300
 """
-# The visual track, kept small: PickCube-v1 seen by its camera (rgbd), one short episode.
+# The visual track (maniskill-visual) in small: PickCube-v1 seen by its camera, one episode.
 VISUAL_CHALLENGE = "push-visual"
-VISUAL_SUITE = """\
-name: push-visual
-version: 1
-description: The visual track in small.
-tasks:
-  - {env_id: PickCube-v1, obs_mode: rgbd, max_episode_steps: 12, episodes: 1}
-phases:
-  dev: {description: Public seeds., seeds: {kind: public, start: 0}}
-conditions:
-  - {name: nominal, params: {kind: nominal}}
-limits:
-  connect_timeout_s: 60
-  first_call_timeout_s: 60
-  call_timeout_s: 10
-  budget_s: 300
-"""
+VISUAL_SUITE = yaml.safe_dump(
+    visual_track_in_small(VISUAL_CHALLENGE, episodes=1).model_dump(mode="json"), sort_keys=False
+)
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -26,7 +25,7 @@ def in_process(*, fail_on_call: int | None = None) -> InProcess:
     return InProcess(example_server(EXAMPLE), fail_on_call=fail_on_call)
 
 
-def pick_cube_spec(**extra: Any) -> TaskSpec:
+def pick_cube_spec(instruction: str = "") -> TaskSpec:
     return TaskSpec(
         env_id="PickCube-v1",
         obs_mode="rgbd",
@@ -36,7 +35,7 @@ def pick_cube_spec(**extra: Any) -> TaskSpec:
         action_low=-np.ones(7, np.float32),
         action_high=np.ones(7, np.float32),
         observation_space=space(rgbd_obs()),
-        extra=extra,
+        instruction=instruction,
     )
 
 

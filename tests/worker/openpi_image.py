@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+from evaluator.suite import ActionChunks, Suite, load_suite
 from tests.worker.container_fixtures import BASE_IMAGE, REPO, SDK
 
 EXAMPLE = REPO / "examples" / "policies" / "openpi-server"
@@ -95,3 +96,27 @@ def build_openpi_image(env: Mapping[str, str], work: Path, *, tag: str = OPENPI_
     if done.returncode != 0:
         pytest.fail(f"podman build of the openpi example failed:\n{done.stderr[-3000:]}")
     return tag
+
+
+def visual_track_in_small(
+    name: str, *, episodes: int, action_chunks: ActionChunks | None = None
+) -> Suite:
+    """maniskill-visual as it is (rgbd, its observation keys, its instructions, its limits) but
+    small: PickCube-v1 only, under its nominal condition, `episodes` episodes of 12 steps on its
+    public seeds, nothing filmed; with these action chunks where given."""
+    visual = load_suite("maniskill-visual")
+    task = visual.task("PickCube-v1").model_copy(
+        update={"max_episode_steps": 12, "episodes": episodes}
+    )
+    small = visual.model_copy(
+        update={
+            "name": name,
+            "description": "The visual track (maniskill-visual) in small.",
+            "tasks": (task,),
+            "conditions": (visual.condition("nominal"),),
+            "phases": {"dev": visual.phase("dev")},
+            "videos": 0,
+            **({"action_chunks": action_chunks} if action_chunks else {}),
+        }
+    )
+    return Suite.model_validate(small.model_dump())

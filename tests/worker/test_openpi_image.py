@@ -16,7 +16,7 @@ from evaluator.evaluation import evaluate
 from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import EvaluationResult
 from evaluator.sources import LocalDirectory
-from evaluator.suite import ActionChunks, Limits, Phase, PublicSeeds, Suite, TaskConfig
+from evaluator.suite import ActionChunks
 from tests.evaluator.conftest import episode_records
 from tests.server.registry_fixture import fixture_registry  # noqa: F401 - pytest fixture
 from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
@@ -26,7 +26,7 @@ from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
     fixture_policy_images,
     policy_containers,
 )
-from tests.worker.openpi_image import EXAMPLE, build_openpi_image
+from tests.worker.openpi_image import EXAMPLE, build_openpi_image, visual_track_in_small
 from worker.containers import ContainerImage
 
 pytestmark = [pytest.mark.sim, pytest.mark.long]
@@ -34,15 +34,10 @@ pytestmark = [pytest.mark.sim, pytest.mark.long]
 REFERENCE = Path(__file__).resolve().parents[1] / "evaluator" / "openpi_reference.py"
 BRIDGE = ["python3", "-m", "manieval_sdk.openpi", "--mapping", "/opt/policy/mapping.toml"]
 SERVICE = f"test-session-{uuid.uuid4().hex[:8]}"
-# The visual track's shape, kept small: PickCube-v1 seen by its camera (rgbd), short episodes;
-# and chunks of the server's length, all executed: the server is asked at steps 0 and 8.
-VISUAL = Suite(
-    name="openpi-visual",
-    version=1,
-    tasks=(TaskConfig(env_id="PickCube-v1", obs_mode="rgbd", max_episode_steps=12, episodes=2),),
-    phases={"dev": Phase(seeds=PublicSeeds(start=0))},
-    limits=Limits(connect_timeout_s=60, first_call_timeout_s=60, call_timeout_s=10, budget_s=300),
-    action_chunks=ActionChunks(max_length=8),
+# The visual track in small, with chunks of the server's length, all executed: the server is
+# asked at steps 0 and 8 of each 12-step episode.
+VISUAL = visual_track_in_small(
+    "openpi-visual", episodes=2, action_chunks=ActionChunks(max_length=8)
 )
 
 

@@ -23,12 +23,6 @@ from manieval_sdk.policy import Observation, Policy, TaskSpec
 METADATA_SHOWN = 2000  # characters of the server's metadata printed to the log
 
 
-def task_instruction(spec: TaskSpec) -> str | None:
-    """The task's natural-language instruction, where its suite gives one."""
-    instruction = getattr(spec, "instruction", None) or spec.extra.get("instruction")
-    return instruction if isinstance(instruction, str) and instruction else None
-
-
 class OpenpiBridge(Policy):
     """Answers the evaluator with what the participant's openpi server infers.
 
@@ -62,7 +56,7 @@ class OpenpiBridge(Policy):
         check_sources(self.mapping, spec.observation_space)
         metadata = self._connected().metadata
         self._sizes = image_sizes(self.mapping, metadata)
-        self._prompt = prompt_text(self.mapping, task_instruction(spec))
+        self._prompt = prompt_text(self.mapping, spec.instruction or None)
 
     def act(self, obs: Observation) -> np.ndarray:
         request = build_request(obs, self.mapping, sizes=self._sizes, prompt=self._prompt)

@@ -33,8 +33,10 @@ def lookup(obs: Any, path: ObsPath) -> Any:
     for depth, name in enumerate(path):
         if not isinstance(node, dict) or name not in node:
             where = "/".join(path[:depth]) or "the observation"
-            there = ", ".join(sorted(map(str, node))) if isinstance(node, dict) else "no entries"
-            raise MappingError(f"{'/'.join(path)}: {where} has no {name!r} (it has: {there})")
+            there = ", ".join(sorted(map(str, node))) if isinstance(node, dict) else ""
+            raise MappingError(
+                f"{'/'.join(path)}: {where} has no {name!r} (it has: {there or 'nothing'})"
+            )
         node = node[name]
     return node
 
