@@ -89,6 +89,7 @@ class EvaluationJob(BaseModel):
             limits=suite.limits,
             runs=runs,
             ignore_terminations=suite.ignore_terminations,
+            action_chunks=suite.action_chunks,
             videos=suite.videos,
             video_conditions=suite.video_conditions,
             video_size=suite.video_size,
