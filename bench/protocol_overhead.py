@@ -6,9 +6,11 @@ rgb and rgbd at 128x128 (the tabletop tasks' camera), rgbd at 224x224 (through M
 actions (protocol 2). Each path keeps its own environment and the two take turns episode by
 episode (the same seed for both, in alternating order), so that what else the machine does hits
 both alike: a run of seconds on one path would meet another load than the other's. The ratio is
-of all the rounds' steps/s together, with the spread of the rounds' own ratios beside it, and
-what the protocol adds to each step in microseconds (per step: a chunk's call is shared by its
-steps); then the floor under that on this machine, a bare round trip between two processes
+of all the rounds' steps/s together, with the spread of the rounds' own ratios beside it, what
+the protocol adds to each step in microseconds (per step: a chunk's call is shared by its
+steps), and the median of the pairs' ratios (a pair: the two paths on one seed, one after the
+other; the figure least moved by bursts of load from elsewhere); then the floor under that on
+this machine, a bare round trip between two processes
 (bench/socket_round_trip.py). One line `protocol_<row>_ratio <ratio>` per row follows, the last
 `protocol_state_ratio <ratio>` (the aims: 0.97 for state, 0.95 for camera observations, 0.99
 for chunks).
@@ -21,9 +23,10 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import statistics
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -141,8 +144,23 @@ def in_process_channel() -> InProcessChannel:
     return InProcessChannel(module.Zero())
 
 
-def measure(row: Row, args: argparse.Namespace) -> tuple[float, float, list[float]]:
-    """Steps/s in-process and over the protocol (all rounds together), and each round's ratio."""
+@dataclass
+class Tally:
+    """Steps and seconds of both paths (in-process, protocol), over all rounds; each round's
+    ratio; and the ratio of each pair of episodes, the two paths on one seed one after the other."""
+
+    steps: list[int] = field(default_factory=lambda: [0, 0])
+    seconds: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    rounds: list[float] = field(default_factory=list)
+    pairs: list[float] = field(default_factory=list)
+
+    def rates(self) -> tuple[float, float]:
+        """Steps/s in-process and over the protocol."""
+        return self.steps[0] / self.seconds[0], self.steps[1] / self.seconds[1]
+
+
+def measure(row: Row, args: argparse.Namespace) -> Tally:
+    """Both paths, episode by episode in turns, over all rounds."""
     plan = row.plan(args)
     endpoint = PolicyEndpoint(max_frame_bytes=plan.limits.max_action_frame_bytes)
     process = LocalDirectory(POLICY_DIR).launch(
@@ -158,26 +176,34 @@ def measure(row: Row, args: argparse.Namespace) -> tuple[float, float, list[floa
         try:
             for path in paths:  # warm both (first calls, first episode) before measuring
                 path.episode(plan.runs[0].seeds[0])
-            totals = [[0, 0.0], [0, 0.0]]  # steps and seconds of each path, all rounds
-            ratios = []
+            tally = Tally()
             for round_no in range(args.rounds):
-                rates = [[0, 0.0], [0, 0.0]]
-                for n, seed in enumerate(plan.runs[0].seeds):
-                    for which in (0, 1) if (round_no + n) % 2 == 0 else (1, 0):
-                        steps, seconds = paths[which].episode(seed)
-                        for tally in (rates[which], totals[which]):
-                            tally[0] += steps
-                            tally[1] += seconds
-                local, remote = (steps / seconds for steps, seconds in rates)
-                ratios.append(remote / local)
+                play_round(paths, plan.runs[0].seeds, round_no, tally)
         finally:
             for path in paths:
                 path.close()
     finally:
         endpoint.close()
         process.stop()
-    local_rate, remote_rate = (steps / seconds for steps, seconds in totals)
-    return local_rate, remote_rate, ratios
+    return tally
+
+
+def play_round(
+    paths: list[PolicyPath], seeds: tuple[int, ...], round_no: int, tally: Tally
+) -> None:
+    """One episode of each path on every seed, the first path alternating."""
+    this_round = Tally()
+    for n, seed in enumerate(seeds):
+        pair = [0.0, 0.0]  # steps/s of each path on this seed
+        for which in (0, 1) if (round_no + n) % 2 == 0 else (1, 0):
+            steps, seconds = paths[which].episode(seed)
+            pair[which] = steps / seconds
+            for counts in (this_round, tally):
+                counts.steps[which] += steps
+                counts.seconds[which] += seconds
+        tally.pairs.append(pair[1] / pair[0])
+    local, remote = this_round.rates()
+    tally.rounds.append(remote / local)
 
 
 def main() -> None:
@@ -194,15 +220,17 @@ def main() -> None:
     if unknown := sorted(set(wanted) - set(names)):
         parser.error(f"unknown rows {', '.join(unknown)} (there are: {', '.join(names)})")
     head = f"{'row':<12}{'in-process steps/s':>20}{'protocol steps/s':>18}{'ratio':>8}"
-    print(head + f"{'us/step':>9}  rounds' ratios (min-max)", flush=True)
+    print(head + f"{'us/step':>9}  rounds' ratios (min-max)  pairs' median", flush=True)
     figures = {}
     for row in (row for row in ROWS if row.name in wanted):
-        local, remote, ratios = measure(row, args)
+        tally = measure(row, args)
+        local, remote = tally.rates()
         figures[row.name] = ratio = remote / local
         overhead_us = (1 / remote - 1 / local) * 1e6
         print(
             f"{row.name:<12}{local:>20.1f}{remote:>18.1f}{ratio:>8.3f}{overhead_us:>9.0f}"
-            f"  {min(ratios):.3f}-{max(ratios):.3f}",
+            f"  {min(tally.rounds):.3f}-{max(tally.rounds):.3f}"
+            f"{statistics.median(tally.pairs):>22.3f}",
             flush=True,
         )
     floor = subprocess.run(

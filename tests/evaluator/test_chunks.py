@@ -18,10 +18,12 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 from evaluator.conditions import ConditionRuntime
 from evaluator.episode import chunk_of, run_episode
-from evaluator.plan import EvaluationPlan
+from evaluator.job import EvaluationJob, evaluation_job
+from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import EpisodeResult
 from evaluator.suite import (
     ActionChunks,
@@ -35,7 +37,14 @@ from evaluator.suite import (
 from manieval_sdk import Policy, serve
 from manieval_sdk.serve import action_reply, agreed_version, task_spec
 from manieval_sdk.wire import recv_message, send_message
-from tests.evaluator.conftest import SCRIPTED, episode_records, run, tiny_plan, tiny_suite
+from tests.evaluator.conftest import (
+    HERE,
+    SCRIPTED,
+    episode_records,
+    run,
+    tiny_plan,
+    tiny_suite,
+)
 
 SHAPE = (2,)
 BOUNDS = (np.full(SHAPE, -100, np.float32), np.full(SHAPE, 100, np.float32))
@@ -70,6 +79,14 @@ def test_execute_defaults_to_the_whole_chunk_and_may_not_exceed_it():
     assert ActionChunks(max_length=16, execute=8).executed == 8
     with pytest.raises(ValueError, match=r"execute \(9\) exceeds max_length \(8\)"):
         ActionChunks(max_length=8, execute=9)
+
+
+def test_a_kubernetes_job_rebuilds_the_plan_with_the_suites_chunks():
+    text = (HERE / "tiny_suite.yaml").read_text() + "action_chunks: {max_length: 8, execute: 4}\n"
+    plan = build_plan(Suite.model_validate(yaml.safe_load(text)), "dev", episodes=2)
+    assert plan.action_chunks == ActionChunks(max_length=8, execute=4)
+    job = evaluation_job(plan, suite_yaml=text)
+    assert EvaluationJob.model_validate_json(job.canonical_json()).plan() == plan
 
 
 # --- what the evaluator accepts ---------------------------------------------------------------
