@@ -43,7 +43,7 @@ def test_a_tail_passes_on_what_came_before_the_echo_then_the_rest_until_the_end(
     with os.fdopen(read, "rb") as stream:
         tail = LogTail(stream)
         os.write(write, b"before\n")
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 120  # a reader thread's first read, on a busy machine
         while tail.total_bytes < len(b"before\n"):  # drained by its thread: before the echo
             assert time.monotonic() < deadline, "the tail never read what was written"
             time.sleep(0.01)
