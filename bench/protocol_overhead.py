@@ -9,14 +9,18 @@ both alike: a run of seconds on one path would meet another load than the other'
 of all the rounds' steps/s together, with the spread of the rounds' own ratios beside it, what
 the protocol adds to each step in microseconds (per step: a chunk's call is shared by its
 steps), and the median of the pairs' ratios (a pair: the two paths on one seed, one after the
-other; the figure least moved by bursts of load from elsewhere); then the floor under that on
-this machine, a bare round trip between two processes
+other; the figure least moved by bursts of load from elsewhere). Last, the fastest of
+`--calls` answers to one observation on each path, their difference per step (the protocol's own
+cost at best: on a loaded machine the figure that load moves least) and the ratio that cost
+would give against the fastest in-process episode's steps/s. Then the floor under all this on this
+machine, a bare round trip between two processes
 (bench/socket_round_trip.py). One line `protocol_<row>_ratio <ratio>` per row follows, the last
 `protocol_state_ratio <ratio>` (the aims: 0.97 for state, 0.95 for camera observations, 0.99
 for chunks).
 
     .venv/bin/python bench/protocol_overhead.py [--rounds 9] [--episodes 6] [--steps 100]
-        [--rgb-episodes 4] [--rgb-steps 20] [--rows state,rgb,rgbd,rgbd224,pointcloud,chunks8]
+        [--rgb-episodes 4] [--rgb-steps 20] [--calls 300]
+        [--rows state,rgb,rgbd,rgbd224,pointcloud,chunks8]
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import importlib.util
 import statistics
 import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +44,7 @@ from evaluator.endpoint import PolicyEndpoint  # noqa: E402
 from evaluator.episode import run_episode  # noqa: E402
 from evaluator.plan import EvaluationPlan, build_plan  # noqa: E402
 from evaluator.runner import task_spec  # noqa: E402
-from evaluator.sim import action_bounds, default_control_freq, make_env  # noqa: E402
+from evaluator.sim import action_bounds, default_control_freq, make_env, to_numpy  # noqa: E402
 from evaluator.sources import LocalDirectory  # noqa: E402
 from evaluator.suite import NO_CHUNKS, ActionChunks, Condition, load_suite  # noqa: E402
 
@@ -131,6 +136,17 @@ class PolicyPath:
         assert result.failure is None, result
         return result.steps, result.wall_time_s
 
+    def fastest_call(self, seed: int, calls: int) -> float:
+        """The shortest of `calls` answers to one observation, in seconds: what the channel
+        costs at best, when nothing else on the machine gets in the way."""
+        obs = to_numpy(self.env.reset(seed=seed)[0])
+        fastest = float("inf")
+        for _ in range(calls):
+            started = time.perf_counter()
+            self.channel.act(obs)
+            fastest = min(fastest, time.perf_counter() - started)
+        return fastest
+
     def close(self) -> None:
         self.env.close()
 
@@ -153,6 +169,8 @@ class Tally:
     seconds: list[float] = field(default_factory=lambda: [0.0, 0.0])
     rounds: list[float] = field(default_factory=list)
     pairs: list[float] = field(default_factory=list)
+    fastest_calls: list[float] = field(default_factory=lambda: [0.0, 0.0])  # seconds, each path
+    fastest_local_rate: float = 0.0  # steps/s of the fastest in-process episode
 
     def rates(self) -> tuple[float, float]:
         """Steps/s in-process and over the protocol."""
@@ -179,6 +197,8 @@ def measure(row: Row, args: argparse.Namespace) -> Tally:
             tally = Tally()
             for round_no in range(args.rounds):
                 play_round(paths, plan.runs[0].seeds, round_no, tally)
+            seed = plan.runs[0].seeds[0]
+            tally.fastest_calls = [path.fastest_call(seed, args.calls) for path in paths]
         finally:
             for path in paths:
                 path.close()
@@ -202,6 +222,7 @@ def play_round(
                 counts.steps[which] += steps
                 counts.seconds[which] += seconds
         tally.pairs.append(pair[1] / pair[0])
+        tally.fastest_local_rate = max(tally.fastest_local_rate, pair[0])
     local, remote = this_round.rates()
     tally.rounds.append(remote / local)
 
@@ -213,6 +234,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--rgb-episodes", type=int, default=4)
     parser.add_argument("--rgb-steps", type=int, default=20)
+    parser.add_argument("--calls", type=int, default=300, help="calls timed for the fastest")
     names = [row.name for row in ROWS]
     parser.add_argument("--rows", default=",".join(names), help="which rows, comma-separated")
     args = parser.parse_args()
@@ -220,17 +242,26 @@ def main() -> None:
     if unknown := sorted(set(wanted) - set(names)):
         parser.error(f"unknown rows {', '.join(unknown)} (there are: {', '.join(names)})")
     head = f"{'row':<12}{'in-process steps/s':>20}{'protocol steps/s':>18}{'ratio':>8}"
-    print(head + f"{'us/step':>9}  rounds' ratios (min-max)  pairs' median", flush=True)
+    print(
+        head + f"{'us/step':>9}  rounds' ratios (min-max)  pairs' median"
+        "  fastest call: us/step  ratio",
+        flush=True,
+    )
     figures = {}
     for row in (row for row in ROWS if row.name in wanted):
         tally = measure(row, args)
         local, remote = tally.rates()
         figures[row.name] = ratio = remote / local
         overhead_us = (1 / remote - 1 / local) * 1e6
+        # What the protocol adds to a call at best, shared by the steps of a chunk; and the
+        # ratio it would give against the fastest in-process episode: both as on a quiet machine.
+        fastest_s = (tally.fastest_calls[1] - tally.fastest_calls[0]) / row.chunks.executed
+        best_ratio = 1 / (1 + fastest_s * tally.fastest_local_rate)
         print(
             f"{row.name:<12}{local:>20.1f}{remote:>18.1f}{ratio:>8.3f}{overhead_us:>9.0f}"
             f"  {min(tally.rounds):.3f}-{max(tally.rounds):.3f}"
-            f"{statistics.median(tally.pairs):>22.3f}",
+            f"{statistics.median(tally.pairs):>22.3f}"
+            f"{fastest_s * 1e6:>24.0f}{best_ratio:>7.3f}",
             flush=True,
         )
     floor = subprocess.run(
