@@ -136,15 +136,23 @@ class EvaluationResult(_Doc):
     videos: list[Video] = []
 
 
+def ran(episode: EpisodeResult) -> bool:
+    """Whether the episode ran, in whole or in part: those planned that an evaluation stopped
+    before (or a policy that never connected never reached) are `not_run`."""
+    return episode.failure != "not_run"
+
+
 def aggregate_task(env_id: str, planned: int, episodes: list[EpisodeResult]) -> TaskResult:
-    """Summarise a task's episodes; episodes planned but not run count as failures.
+    """Summarise a task's episodes; episodes planned but not run count as failures of the
+    rate (a completed evaluation has none), while the means are of the episodes that ran.
 
     The success-at-end rate is null when the episodes do not measure it (they stopped at the
     first success); a suite either measures it in every episode or in none.
     """
     successes = sum(e.success_once for e in episodes)
     low, high = wilson_interval(successes, planned)
-    ran = max(len(episodes), 1)
+    done = [e for e in episodes if ran(e)]
+    count = max(len(done), 1)
     at_end_measured = all(e.success_at_end is not None for e in episodes)
     at_end = sum(bool(e.success_at_end) for e in episodes)
     return TaskResult(
@@ -155,8 +163,8 @@ def aggregate_task(env_id: str, planned: int, episodes: list[EpisodeResult]) -> 
         ci_low=low,
         ci_high=high,
         success_at_end_rate=(at_end / planned if planned else 0.0) if at_end_measured else None,
-        mean_steps=sum(e.steps for e in episodes) / ran,
-        mean_return=sum(e.episode_return for e in episodes) / ran,
+        mean_steps=sum(e.steps for e in done) / count,
+        mean_return=sum(e.episode_return for e in done) / count,
         episodes=episodes,
     )
 

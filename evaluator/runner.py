@@ -296,13 +296,9 @@ def run_shard(
             first=handed,
         )
     except PolicyFailure as failure:
-        if outcome.abort is None:  # it broke before the first episode: charge that episode
+        if outcome.abort is None:  # it broke before its first episode: none of them ran
             first_run, episodes = shard.units[0]
-            index, seed = episodes[0]
-            charged = failed_episode(
-                index, seed, failure.kind, failure.reason, at_end_measured=plan.ignore_terminations
-            )
-            outcome.episodes.append((first_run, charged))
+            index, _ = episodes[0]
             outcome.abort = (first_run, index, Abort(kind=failure.kind, reason=failure.reason))
     except Stopped:
         pass  # cancelled: the episode in progress, and those after it, are recorded not_run

@@ -133,8 +133,8 @@ def wait_and_report(client: Client, submission_id: int, *, as_json: bool) -> NoR
 def _report(s: dict[str, Any], server: str) -> None:
     """The result table; after a failure, where to read why (the reason was said already)."""
     out = render.stdout()
-    if s["tasks"]:
-        out.print(render.results_table(s))
+    if (shown := render.results(s)) is not None:
+        out.print(shown)
     if s["state"] in ("failed", "timed_out", "error"):
         render.stderr().print(f"its log: manieval logs {s['id']}{server_flag(server)}")
 
@@ -170,8 +170,8 @@ def status(
     out = render.stdout()
     out.print(render.submission_summary(s))
     out.print(render.timeline(s))
-    if s["tasks"]:
-        out.print(render.results_table(s))
+    if (shown := render.results(s)) is not None:
+        out.print(shown)
     if s["state"] not in FINAL_STATES:
         render.stderr().print(
             f"follow it: manieval status {s['id']} --wait{server_flag(client.server)}"

@@ -190,6 +190,30 @@ def timeline(s: JSON) -> Table:
     return table
 
 
+def task_cell(r: JSON) -> str:
+    """A task's result: its rate and interval when every planned episode ran, else what ran
+    (a submission that ended part-way has no rate: docs/metrics.md)."""
+    ran = r.get("episodes_ran", r["episodes"])
+    if r.get("success_rate") is not None and ran == r["episodes"]:
+        return (
+            f"{r['success_rate']:.2f} [{r['ci_low']:.2f}, {r['ci_high']:.2f}]"
+            f" {r['successes']}/{r['episodes']}"
+        )
+    if not ran:
+        return f"none of {r['episodes']} ran"
+    return f"{ran} of {r['episodes']} ran, {r['successes']} succeeded"
+
+
+def results(s: JSON) -> Table | Text | None:
+    """A submission's results as `status` and `submit --wait` print them: the table, or that
+    no episode ran; None before it has any."""
+    if not s["tasks"]:
+        return None
+    if not any(r.get("episodes_ran", r["episodes"]) for r in s["tasks"]):
+        return Text("no episodes ran")
+    return results_table(s)
+
+
 def results_table(s: JSON) -> Table:
     """Success rate (Wilson 95% interval) per task and condition, as `manieval evaluate` shows."""
     score = f", score {s['score']:.3f}" if s.get("score") is not None else ""
@@ -200,10 +224,7 @@ def results_table(s: JSON) -> Table:
         table.add_column(name, justify="right")
     cells: dict[str, dict[str, str]] = {}
     for r in s["tasks"]:
-        cells.setdefault(r["env_id"], {})[r["condition"]] = (
-            f"{r['success_rate']:.2f} [{r['ci_low']:.2f}, {r['ci_high']:.2f}]"
-            f" {r['successes']}/{r['episodes']}"
-        )
+        cells.setdefault(r["env_id"], {})[r["condition"]] = task_cell(r)
     for env_id, row in cells.items():
         table.add_row(env_id, *(row.get(c, "-") for c in conditions))
     means = s.get("conditions", {})

@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
 from evaluator.results import (
+    Abort,
     ConditionResult,
     EpisodeResult,
     EvaluationResult,
@@ -106,10 +107,16 @@ def gpu_suite(directory: Path, *, gpus: int = 1) -> Path:
 
 
 def result_doc(
-    successes: list[bool], *, phase: str = "dev", conditions: tuple[str, ...] = ("nominal",)
+    successes: list[bool],
+    *,
+    phase: str = "dev",
+    conditions: tuple[str, ...] = ("nominal",),
+    planned: int | None = None,
+    abort: Abort | None = None,
 ) -> EvaluationResult:
-    """A completed result of PickCube-v1 on the server-tiny suite: these episode outcomes,
-    the same task under every condition."""
+    """A result of PickCube-v1 on the server-tiny suite: these episode outcomes, the same task
+    under every condition; with `planned` more than ran, the rest `not_run` as the evaluator
+    records them (aborted with `abort`, or completed as a cancelled evaluation is)."""
     episodes = [
         EpisodeResult(
             index=i,
@@ -122,6 +129,21 @@ def result_doc(
         )
         for i, ok in enumerate(successes)
     ]
+    planned = len(episodes) if planned is None else planned
+    episodes += [
+        EpisodeResult(
+            index=i,
+            seed=1000 + i,
+            success_once=False,
+            success_at_end=False,
+            steps=0,
+            episode_return=0.0,
+            wall_time_s=0.0,
+            failure="not_run",
+            failure_reason="the evaluation stopped before it",
+        )
+        for i in range(len(episodes), planned)
+    ]
     task = aggregate_task("PickCube-v1", len(episodes), episodes)
     now = datetime.now(UTC)
     return EvaluationResult(
@@ -131,7 +153,8 @@ def result_doc(
         versions=Versions(manieval="0", mani_skill="0", sapien="0", torch="0", python="3"),
         started_at=now,
         finished_at=now,
-        status="completed",
+        status="aborted" if abort else "completed",
+        abort=abort,
         score=task.success_rate,
         conditions=[
             ConditionResult(name=name, params={"kind": name}, score=task.success_rate, tasks=[task])

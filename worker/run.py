@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,15 @@ FRAME_RENDER_S = 0.25  # a slow machine's time to render a video frame (45-100 m
 
 class NotRunnable(Exception):
     """The submission cannot be run by this worker's configuration (our error, not theirs)."""
+
+
+@dataclass(frozen=True)
+class Ended:
+    """An attempt the server ended while it ran (a cancel, the reconciler's timeout), with the
+    result of what ran until the worker saw it: the server keeps it beside its own end."""
+
+    state: State
+    result: EvaluationResult | None = None
 
 
 def policy_source(
@@ -139,8 +149,10 @@ def execute(api: ServerAPI, settings: WorkerSettings, handed: Assignment) -> Sta
     if result is None:
         _interrupted(sid, attempt)
         return None
-    if isinstance(result, State):  # ended elsewhere (cancelled, timed out): already recorded
-        return result
+    if isinstance(result, Ended):  # cancelled or timed out meanwhile: recorded, but not what ran
+        if result.result is not None:
+            api.final(sid, attempt, ended(result.state, "what ran", result=result.result))
+        return result.state
     return api.final(sid, attempt, conclusion(result))
 
 
@@ -169,7 +181,7 @@ def _evaluate_recording(
     attempt: int,
     plan: EvaluationPlan,
     source: PolicySource,
-) -> EvaluationResult | State | None:
+) -> EvaluationResult | Ended | None:
     """`_evaluate`, with the plan's episode videos recorded and stored on the server before
     the final report (the page shows them as soon as the result is there)."""
     processes = settings.evaluation_processes
@@ -180,7 +192,7 @@ def _evaluate_recording(
             api, sid, attempt, plan, source, processes=processes, video_dir=directory
         )
         if not isinstance(result, EvaluationResult):
-            return result
+            return result  # the videos of an attempt that ended are not kept
         return upload_videos(
             api, submission_id=sid, attempt=attempt, result=result, directory=directory
         )
@@ -195,7 +207,7 @@ def _evaluate(
     *,
     processes: int,
     video_dir: Path | None = None,
-) -> EvaluationResult | State | None:
+) -> EvaluationResult | Ended | None:
     """The result, or the state the attempt was ended in elsewhere while it ran, or None when
     the worker's stop interrupted it. With `processes`, the simulator runs in that many warm
     evaluator processes (`evaluator.pool`), not in this one, whose other threads (the embedded
@@ -266,5 +278,5 @@ def _evaluate(
         finished.set()
         beat.join()
     if stopped_as:
-        return stopped_as[0]
+        return Ended(stopped_as[0], None if interrupted.is_set() else result)
     return None if interrupted.is_set() else result

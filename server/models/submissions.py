@@ -130,6 +130,11 @@ class TaskResultRow(Base):
     condition: Mapped[str] = mapped_column(String(32))
     env_id: Mapped[str] = mapped_column(String(64))
     episodes: Mapped[int] = mapped_column(Integer)
+    """Planned."""
+    episodes_ran: Mapped[int] = mapped_column(Integer)
+    """Those that ran, in whole or in part (`evaluator.results.ran`): all of them once the
+    evaluation completed; only these have episode rows. The rate and its interval are over
+    the planned ones, so they mean something only when every planned episode ran."""
     successes: Mapped[int] = mapped_column(Integer)
     success_rate: Mapped[float] = mapped_column(Float)
     ci_low: Mapped[float] = mapped_column(Float)

@@ -132,19 +132,7 @@ def submission_detail(
             )
             for t in transitions
         ],
-        tasks=[
-            TaskResultOut(
-                condition=r.condition,
-                env_id=r.env_id,
-                episodes=r.episodes,
-                successes=r.successes,
-                success_rate=r.success_rate,
-                ci_low=r.ci_low,
-                ci_high=r.ci_high,
-                mean_steps=r.mean_steps,
-            )
-            for r in rows
-        ],
+        tasks=[TaskResultOut.model_validate(r, from_attributes=True) for r in rows],
         conditions=condition_means(rows),
     )
 

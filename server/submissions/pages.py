@@ -64,6 +64,7 @@ def outcome(
     private = owned_or_admin(s, who.user)
     rows = task_rows(db, submission=s)
     episodes, episode_total = _episodes(db, s, episode_page) if private else ([], 0)
+    complete = all(r.complete for r in rows)
     chart_rows = [
         TaskSuccess(
             condition=r.condition,
@@ -75,12 +76,16 @@ def outcome(
             high=r.ci_high,
         )
         for r in rows
+        if r.success_rate is not None and r.ci_low is not None and r.ci_high is not None
     ]
     return {
         "submission": s,
         "private": private,
         "tasks": rows,
-        "chart": success_bars(chart_rows) if rows else None,
+        "complete": complete,
+        "episodes_ran": sum(r.episodes_ran for r in rows),
+        "episodes_planned": sum(r.episodes for r in rows),
+        "chart": success_bars(chart_rows) if rows and complete else None,
         "conditions": condition_means(rows),
         "episodes": episodes,
         "episode_total": episode_total,

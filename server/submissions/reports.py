@@ -14,7 +14,7 @@ from typing import Any, TypeVar
 from sqlalchemy import delete, update
 from sqlalchemy.orm import Session as DB
 
-from evaluator.results import EvaluationResult
+from evaluator.results import EvaluationResult, ran
 from internal_api.schemas import LOG_TAIL_LIMIT, ErrorCause
 from server.kit.errors import Conflict, Invalid, NotFound
 from server.models import (
@@ -112,6 +112,10 @@ def report_progress(
     return applied
 
 
+ENDED_ELSEWHERE = frozenset({State.CANCELLED, State.TIMED_OUT})
+"""Final states the server gives a running attempt itself; its worker reports what ran after."""
+
+
 def report_final(
     db: DB,
     submission_id: int,
@@ -130,12 +134,23 @@ def report_final(
     if state == State.SUCCEEDED and result is None:
         raise Invalid("a succeeded submission needs its result document")
     submission = _current(db, submission_id, attempt)
-    if submission.state.final:
-        # Idempotent repeat of the same report; any other final state already won.
-        return submission.state == state
-    reason, log_tail = storable_data(reason), storable_data(log_tail[-LOG_TAIL_LIMIT:])
     if result is not None:
         result = EvaluationResult.model_validate(storable_data(result.model_dump(mode="json")))
+    if submission.state.final:
+        # Idempotent repeat of the same report; any other final state already won. What ran
+        # of an attempt ended elsewhere (a cancel, the reconciler's timeout) comes after the
+        # end, from the worker that stopped it: kept once, the state and reason unchanged.
+        if (
+            submission.state == state
+            and state in ENDED_ELSEWHERE
+            and result is not None
+            and submission.result is None
+        ):
+            _store_results(db, submission, result)
+            submission.result = result.model_dump(mode="json")
+            changed(db, submission_id)
+        return submission.state == state
+    reason, log_tail = storable_data(reason), storable_data(log_tail[-LOG_TAIL_LIMIT:])
     values: dict[str, Any] = {"log_tail": log_tail}
     if cause is not None:
         if state != State.ERROR:
@@ -165,12 +180,14 @@ def _store_results(db: DB, submission: Submission, result: EvaluationResult) -> 
     )
     for condition in result.conditions:
         for task in condition.tasks:
+            episodes = [episode for episode in task.episodes if ran(episode)]
             row = TaskResultRow(
                 submission_id=submission.id,
                 attempt=submission.attempt,
                 condition=condition.name,
                 env_id=task.env_id,
                 episodes=task.episodes_planned,
+                episodes_ran=len(episodes),
                 successes=task.successes,
                 success_rate=task.success_rate,
                 ci_low=task.ci_low,
@@ -193,7 +210,7 @@ def _store_results(db: DB, submission: Submission, result: EvaluationResult) -> 
                     clipped_actions=episode.clipped_actions,
                     failure=episode.failure_reason,
                 )
-                for episode in task.episodes
+                for episode in episodes
             )
     db.flush()
 

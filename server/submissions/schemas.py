@@ -64,12 +64,18 @@ class TransitionOut(BaseModel):
 class TaskResultOut(BaseModel):
     condition: str
     env_id: str
-    episodes: int
+    episodes: int = Field(description="episodes planned")
+    episodes_ran: int = Field(
+        description="episodes that ran, in whole or in part: fewer than planned when the "
+        "evaluation ended part-way (failed, timed out, cancelled), 0 when none ran"
+    )
     successes: int
-    success_rate: float
-    ci_low: float
-    ci_high: float
-    mean_steps: float
+    success_rate: float | None = Field(
+        description="successes over the planned episodes; null unless every one of them ran"
+    )
+    ci_low: float | None = Field(description="Wilson 95% interval; null like success_rate")
+    ci_high: float | None = Field(description="Wilson 95% interval; null like success_rate")
+    mean_steps: float | None = Field(description="over the episodes that ran; null if none did")
 
 
 class QueueOut(BaseModel):
@@ -114,7 +120,10 @@ class SubmissionOut(BaseModel):
 class SubmissionDetail(SubmissionOut):
     transitions: list[TransitionOut]
     tasks: list[TaskResultOut]
-    conditions: dict[str, float]
+    conditions: dict[str, float] = Field(
+        description="each condition's mean success rate over its tasks, for the conditions "
+        "whose every planned episode ran"
+    )
 
 
 class EpisodeOut(BaseModel):

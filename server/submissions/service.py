@@ -299,23 +299,64 @@ def transitions_of(db: DB, *, submission_id: int, after: int = 0) -> list[Transi
     )
 
 
-def task_rows(db: DB, *, submission: Submission) -> list[TaskResultRow]:
+@dataclass(frozen=True)
+class TaskOutcome:
+    """One task under one condition as pages, the API and the CLI show it. A rate and its
+    interval are over the planned episodes: they are given only where every one of those ran,
+    so that an evaluation that ended part-way shows what ran and invents nothing."""
+
+    condition: str
+    env_id: str
+    episodes: int
+    """Planned."""
+    episodes_ran: int
+    successes: int
+    success_rate: float | None
+    ci_low: float | None
+    ci_high: float | None
+    mean_steps: float | None
+    """Over the episodes that ran; None when none did."""
+
+    @property
+    def complete(self) -> bool:
+        return self.episodes_ran == self.episodes
+
+
+def task_rows(db: DB, *, submission: Submission) -> list[TaskOutcome]:
     """The current attempt's per-task results, in the order the evaluator reported them."""
-    return list(
-        db.scalars(
-            select(TaskResultRow)
-            .where(
-                TaskResultRow.submission_id == submission.id,
-                TaskResultRow.attempt == submission.attempt,
-            )
-            .order_by(TaskResultRow.id)
+    rows = db.scalars(
+        select(TaskResultRow)
+        .where(
+            TaskResultRow.submission_id == submission.id,
+            TaskResultRow.attempt == submission.attempt,
         )
+        .order_by(TaskResultRow.id)
+    )
+    return [_outcome(row) for row in rows]
+
+
+def _outcome(row: TaskResultRow) -> TaskOutcome:
+    complete = row.episodes_ran == row.episodes
+    return TaskOutcome(
+        condition=row.condition,
+        env_id=row.env_id,
+        episodes=row.episodes,
+        episodes_ran=row.episodes_ran,
+        successes=row.successes,
+        success_rate=row.success_rate if complete else None,
+        ci_low=row.ci_low if complete else None,
+        ci_high=row.ci_high if complete else None,
+        mean_steps=row.mean_steps if row.episodes_ran else None,
     )
 
 
-def condition_means(rows: list[TaskResultRow]) -> dict[str, float]:
-    """Each condition's mean success rate over its tasks."""
-    return results.condition_means((row.condition, row.success_rate) for row in rows)
+def condition_means(rows: list[TaskOutcome]) -> dict[str, float]:
+    """Each condition's mean success rate over its tasks, for the conditions whose every
+    planned episode ran."""
+    partial = {row.condition for row in rows if not row.complete}
+    return results.condition_means(
+        (row.condition, row.success_rate or 0.0) for row in rows if row.condition not in partial
+    )
 
 
 def episode_rows(

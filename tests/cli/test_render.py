@@ -153,3 +153,37 @@ def test_a_team_row_names_the_team_beside_its_display_name_and_who_submitted() -
     console = Console(width=200, record=True)
     console.print(render.leaderboard_table(board))
     assert "alice (grasp-lab) by ada" in console.export_text()
+
+
+def _task(condition: str, ran: int, planned: int, successes: int) -> dict[str, object]:
+    complete = ran == planned
+    return {
+        "condition": condition,
+        "env_id": "PickCube-v1",
+        "episodes": planned,
+        "episodes_ran": ran,
+        "successes": successes,
+        "success_rate": successes / planned if complete else None,
+        "ci_low": 0.1 if complete else None,
+        "ci_high": 0.9 if complete else None,
+        "mean_steps": 10.0 if ran else None,
+    }
+
+
+def test_a_submission_that_ended_part_way_shows_what_ran_and_no_rate() -> None:
+    from rich.console import Console
+
+    base = {"id": 7, "challenge": "c", "phase": "dev", "score": None}
+    tasks = [_task("nominal", 4, 4, 2), _task("noise", 1, 4, 1)]
+    part = {**base, "tasks": tasks, "conditions": {"nominal": 0.5}}  # as the API gives them
+    console = Console(record=True, width=200)
+    shown = render.results(part)
+    assert shown is not None
+    console.print(shown)
+    text = console.export_text()
+    assert "0.50 [0.10, 0.90] 2/4" in text  # a task whose every episode ran
+    assert "1 of 4 ran, 1 succeeded" in text
+    assert "0.500" in text  # the mean of the condition that ran to its end, and no other
+    none = {**base, "tasks": [_task("nominal", 0, 4, 0), _task("noise", 0, 4, 0)]}
+    assert str(render.results(none)) == "no episodes ran"
+    assert render.results({**base, "tasks": []}) is None

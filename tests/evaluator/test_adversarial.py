@@ -36,15 +36,22 @@ def episodes(result: EvaluationResult) -> list[tuple[str | None, str | None]]:
     return [(e.failure, e.failure_reason) for e in result.conditions[0].tasks[0].episodes]
 
 
-def assert_aborted(result: EvaluationResult, kind: str, reason: str) -> None:
+def assert_aborted(
+    result: EvaluationResult, kind: str, reason: str, *, started: bool = True
+) -> None:
+    """Aborted for `kind`; the episode it broke in is charged with it, unless it broke before
+    its first episode (`started=False`): then no episode ran."""
     assert result.status == "aborted"
     assert result.abort is not None
     assert result.abort.kind == kind
     assert reason in result.abort.reason
     assert result.score == 0.0
     failures = [f for f, _ in episodes(result)]
-    assert failures[0] == kind
-    assert set(failures[1:]) <= {"not_run"}
+    if not started:
+        assert set(failures) == {"not_run"}, failures
+    else:
+        assert failures[0] == kind
+        assert set(failures[1:]) <= {"not_run"}
 
 
 def test_policy_that_crashes_mid_episode_aborts_with_its_stderr(make_policy):
@@ -65,7 +72,7 @@ serve(Crash())
 
 def test_policy_that_dies_before_connecting_aborts_quickly_with_its_traceback(make_policy):
     result = evaluate_policy(make_policy, "raise ImportError('no module named torch_magic')\n")
-    assert_aborted(result, "policy_crashed", "exited before connecting")
+    assert_aborted(result, "policy_crashed", "exited before connecting", started=False)
     assert "torch_magic" in result.abort.log_tail
 
 
@@ -85,7 +92,7 @@ serve(Hang())
 
 def test_policy_that_never_connects_times_out(make_policy):
     result = evaluate_policy(make_policy, "time.sleep(3600)\n", connect_timeout_s=1.0)
-    assert_aborted(result, "policy_timeout", "did not connect within 1s")
+    assert_aborted(result, "policy_timeout", "did not connect within 1s", started=False)
 
 
 def test_policy_that_drips_bytes_cannot_extend_its_deadline(make_policy):
@@ -102,7 +109,7 @@ time.sleep(3600)
 """,
         first_call_timeout_s=1.0,
     )
-    assert_aborted(result, "policy_timeout", "no answer to 'hello'")
+    assert_aborted(result, "policy_timeout", "no answer to 'hello'", started=False)
 
 
 def test_nan_action_fails_the_episode_and_the_evaluation_goes_on(make_policy):
@@ -189,7 +196,7 @@ sock.sendall(struct.pack(">I", 16) + b"\\xc1" * 16)
 time.sleep(3600)
 """,
     )
-    assert_aborted(result, "protocol_error", "malformed message")
+    assert_aborted(result, "protocol_error", "malformed message", started=False)
 
 
 def test_unexpected_reply_type_aborts_as_a_protocol_error(make_policy):
@@ -202,7 +209,9 @@ sock.sendall(encode_frame({"type": "score", "value": 1.0}))
 time.sleep(3600)
 """,
     )
-    assert_aborted(result, "protocol_error", "expected 'ready' after 'hello', got 'score'")
+    assert_aborted(
+        result, "protocol_error", "expected 'ready' after 'hello', got 'score'", started=False
+    )
 
 
 def test_socket_closed_mid_episode_aborts_even_if_the_process_lives_on(make_policy):
@@ -285,7 +294,9 @@ sock.sendall(encode_frame({"type": "error", "message": "I do not speak v1"}))
 time.sleep(3600)
 """,
     )
-    assert_aborted(result, "protocol_error", "refused the handshake: I do not speak v1")
+    assert_aborted(
+        result, "protocol_error", "refused the handshake: I do not speak v1", started=False
+    )
 
 
 def test_list_action_fails_the_episode_as_invalid(make_policy):

@@ -143,7 +143,14 @@ def test_cancel_stops_a_running_evaluation(embedded: httpx.Client, service: Serv
         json={"challenge": "server-long", "phase": "test", "image": "local:random"},
     )
     sid = r.json()["id"]
-    wait_running(embedded, headers, sid)
+    body = wait_running(embedded, headers, sid)
+    deadline = time.monotonic() + 300  # a busy machine's first episode, and its report
+    while not (body.get("progress") or {}).get("done"):
+        assert time.monotonic() < deadline, body
+        assert body["state"] == "running", body
+        time.sleep(0.2)
+        body = embedded.get(f"{API}/submissions/{sid}", headers=headers).json()
+    done = body["progress"]["done"]
     cancelled = embedded.post(f"{API}/submissions/{sid}/cancel", headers=headers)
     assert cancelled.status_code == 200
     assert cancelled.json()["state"] == "cancelled"
@@ -152,6 +159,19 @@ def test_cancel_stops_a_running_evaluation(embedded: httpx.Client, service: Serv
     body = wait_final(embedded, headers, sid)
     assert body["state"] == "cancelled"
     assert body["reason"] == "cancelled by its owner"
+    # What ran before the cancel is kept (the worker reports it after the end), and only that:
+    # no rate or interval over the episodes that never started.
+    ran = sum(t["episodes_ran"] for t in body["tasks"])
+    planned = sum(t["episodes"] for t in body["tasks"])
+    assert done <= ran < planned, body["tasks"]
+    for task in body["tasks"]:
+        complete = task["episodes_ran"] == task["episodes"]
+        assert (task["success_rate"] is None, task["ci_low"] is None) == (not complete,) * 2
+    assert body["conditions"] == {}  # the first condition did not run to its end
+    url = f"{API}/submissions/{sid}/episodes?per_page=200"
+    episodes = embedded.get(url, headers=headers).json()
+    assert episodes["total"] == ran
+    assert all(e["failure"] != "the evaluation stopped before it" for e in episodes["items"])
 
 
 def test_a_crashing_policy_ends_failed_with_its_log_for_the_owner_only(
@@ -175,6 +195,10 @@ def test_a_crashing_policy_ends_failed_with_its_log_for_the_owner_only(
     body = wait_final(embedded, headers, r.json()["id"])
     assert body["state"] == "failed"
     assert "exit code 3" in str(body["reason"])
+    assert body["tasks"]
+    assert {t["episodes_ran"] for t in body["tasks"]} == {0}
+    assert {t["success_rate"] for t in body["tasks"]} == {None}
+    assert body["conditions"] == {}
     logs = embedded.get(f"{API}/submissions/{r.json()['id']}/logs", headers=headers).json()
     assert "out of luck" in logs["log_tail"]
     assert embedded.get(f"{API}/submissions/{r.json()['id']}/logs").status_code == 404

@@ -29,7 +29,7 @@ from internal_api.schemas import (
 )
 from server.challenges.service import suite_of
 from server.kit.settings import Settings
-from server.models import Cause, Submission, TaskResultRow, Transition, utcnow
+from server.models import Cause, EpisodeResultRow, Submission, TaskResultRow, Transition, utcnow
 from server.submissions.service import cancel
 from testkit.factories import (
     RecordingQueue,
@@ -220,6 +220,39 @@ def test_reports_on_a_cancelled_attempt_no_longer_apply(
     assert loaded(committed_sessions, sid).progress == {"done": 1, "total": 4}
     assert api.final(sid, 1, FinalReport(state=State.FAILED, reason="late")) == State.CANCELLED
     assert loaded(committed_sessions, sid).state == State.CANCELLED
+
+
+def test_what_ran_of_a_cancelled_attempt_is_kept_once_and_its_end_unchanged(
+    committed_sessions: sessionmaker[Session], api: ServerAPI
+) -> None:
+    """The worker sees a cancel at its next report and stops; what ran until then comes
+    after the end, in a final report of the state the server gave it."""
+    (sid,) = queue(committed_sessions, {"alice": 1})
+    claimed_and_running(api, sid)
+    with committed_sessions.begin() as db:
+        s = db.get(Submission, sid, options=[joinedload(Submission.user)])
+        assert s is not None
+        cancel(db, s.user, s)
+    ran = result_doc([True, False, True], planned=8)
+    other = result_doc([True] * 8)
+    assert api.final(sid, 1, FinalReport(state=State.FAILED, reason="x", result=other)) == (
+        State.CANCELLED
+    )
+    assert loaded(committed_sessions, sid).result is None  # not the state it ended in
+    for result in (ran, other):  # kept once: a later report replaces nothing
+        report = FinalReport(state=State.CANCELLED, reason="what ran", result=result)
+        assert api.final(sid, 1, report) == State.CANCELLED
+    s = loaded(committed_sessions, sid)
+    assert (s.state, s.reason, s.score) == (State.CANCELLED, "cancelled by its owner", None)
+    assert s.result is not None
+    assert s.result["conditions"][0]["tasks"][0]["successes"] == 2
+    with committed_sessions() as db:
+        rows = db.scalars(select(TaskResultRow).where(TaskResultRow.submission_id == sid)).all()
+        assert [(r.episodes, r.episodes_ran, r.successes) for r in rows] == [(8, 3, 2)]
+        episodes = db.scalars(
+            select(EpisodeResultRow).where(EpisodeResultRow.task_result_id == rows[0].id)
+        ).all()
+        assert sorted(e.index for e in episodes) == [0, 1, 2]
 
 
 def test_a_final_report_is_idempotent_and_the_first_final_state_wins(

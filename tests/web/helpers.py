@@ -8,9 +8,7 @@ import re
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
-from evaluator.results import (
-    Video,
-)
+from evaluator.results import Abort, Video
 from server.models import Challenge, State, Submission, User
 from server.submissions.reports import report_final, report_state
 from testkit.factories import PASSWORD, queue_submission, result_doc
@@ -51,18 +49,21 @@ def finished(
     public: bool = True,
     description: str = "",
     videos: list[Video] | None = None,
+    planned: int | None = None,
+    abort: Abort | None = None,
 ) -> Submission:
-    """A submission run to `state` through the worker's reporting path."""
+    """A submission run to `state` through the worker's reporting path; with `planned`, it
+    ended part-way and reports what ran (the `successes`) and the rest not run."""
     s = queue_submission(db, user, challenge)
     s.public = public
     s.description = description
     db.flush()
     assert report_state(db, s.id, 1, State.LAUNCHING, "starting")
     assert report_state(db, s.id, 1, State.RUNNING, "evaluating")
-    doc = result_doc(successes, conditions=WEB_CONDITIONS)
+    doc = result_doc(successes, conditions=WEB_CONDITIONS, planned=planned, abort=abort)
     if videos:
         doc = doc.model_copy(update={"videos": videos})
-    result = doc if state == State.SUCCEEDED else None
+    result = doc if state == State.SUCCEEDED or planned is not None else None
     assert report_final(db, s.id, 1, state, reason, result=result, log_tail=log_tail)
     db.commit()
     db.refresh(s)

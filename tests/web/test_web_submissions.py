@@ -6,7 +6,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
-from evaluator.results import Video
+from evaluator.results import Abort, Video
 from server.kit.settings import Settings
 from server.models import Challenge, State, Submission
 from testkit.factories import RecordingQueue, make_user
@@ -77,6 +77,50 @@ def test_a_failed_submission_says_why(
     assert "Why it ended failed" in html
     assert "the policy exited with exit code 3" in html
     assert SECRET not in html
+
+
+def test_a_submission_that_ended_part_way_shows_the_episodes_that_ran_and_no_others(
+    db: Session, tiny: Challenge, people: dict[str, TestClient]
+) -> None:
+    crash = Abort(kind="policy_crashed", reason="the policy closed the connection")
+    s = alice_s(db, tiny, state=State.FAILED, reason=crash.reason, planned=3, abort=crash)
+    for who in ("alice", "bob"):
+        html = people[who].get(f"/submissions/{s.id}").text
+        assert "What ran before it ended" in html
+        assert "4 of the 6 planned episodes ran before it ended" in html  # 2 conditions
+        assert "2 of 3" in html  # per task and condition
+        assert 'class="ibar"' not in html  # no interval over episodes that never started
+        assert "0.500" not in html
+        assert "0.333" not in html
+    owner = people["alice"].get(f"/submissions/{s.id}").text
+    assert "4 episodes</caption>" in owner  # the ones that ran, and no others
+    assert "the evaluation stopped before it" not in owner
+    assert "The log below shows its last words" in owner
+    public = people["bob"].get(f"/submissions/{s.id}").text
+    assert "Its owner can read the policy's log" in public
+    assert "The log below" not in public
+
+
+def test_a_submission_whose_policy_never_connected_says_no_episode_ran(
+    db: Session, tiny: Challenge, people: dict[str, TestClient], client: TestClient
+) -> None:
+    never = Abort(kind="policy_crashed", reason="the policy exited before connecting")
+    from server.models import User
+
+    alice = db.query(User).filter_by(username="alice").one()
+    s = finished(
+        db, alice, tiny, [], state=State.FAILED, reason=never.reason, planned=3, abort=never
+    )
+    html = people["alice"].get(f"/submissions/{s.id}").text
+    assert "No episodes ran: it ended before its first episode." in html
+    assert "Mean steps" not in html
+    assert 'class="ibar"' not in html
+    body = client.get(f"/api/v1/submissions/{s.id}").json()
+    assert [(t["episodes"], t["episodes_ran"], t["success_rate"]) for t in body["tasks"]] == [
+        (3, 0, None)
+    ] * 2
+    assert [t["mean_steps"] for t in body["tasks"]] == [None, None]
+    assert body["conditions"] == {}
 
 
 def test_stored_videos_of_the_current_attempt_are_shown_to_whoever_sees_the_submission(
