@@ -88,6 +88,14 @@ def viewer(request: Request, db: DBDep) -> Viewer:
 ViewerDep = Annotated[Viewer, Depends(viewer)]
 
 
+def error_page_viewer(request: Request) -> Viewer:
+    """The viewer of an error page, which has no dependencies: read in a session of its own."""
+    with services(request).sessions() as db:
+        return viewer_for(
+            request, accounts.session_for(db, cookie=request.cookies.get(SESSION_COOKIE))
+        )
+
+
 async def posted(
     request: Request, who: ViewerDep, csrf_token: Annotated[str, Form()] = ""
 ) -> Viewer:

@@ -181,7 +181,9 @@ def test_private_submissions_are_404_and_public_ones_refuse_their_logs_and_episo
         for sid in (pid, qid):
             assert client.get(f"{API}/submissions/{sid}/{suffix}", headers=alice).status_code == 200
         for headers in (bob, {}):  # a stranger and a visitor
-            assert client.get(f"{API}/submissions/{pid}/{suffix}", headers=headers).status_code == 404
+            assert (
+                client.get(f"{API}/submissions/{pid}/{suffix}", headers=headers).status_code == 404
+            )
             # The public one exists: "no submission" would be a lie, the part is what is refused.
             r = client.get(f"{API}/submissions/{qid}/{suffix}", headers=headers)
             assert r.status_code == 403

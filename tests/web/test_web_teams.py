@@ -29,7 +29,10 @@ def test_create_invite_accept_and_leave_through_the_forms(client: TestClient, db
     assert r.headers["location"] == "/teams/grasp-lab?done=created"
     team_page = alice.get(r.headers["location"]).text
     assert "Your team is created" in team_page
-    assert 'You are the admin of\n    <a href="/teams/grasp-lab">Grasp Lab</a>' in alice.get("/team").text
+    assert (
+        'You are the admin of\n    <a href="/teams/grasp-lab">Grasp Lab</a>'
+        in alice.get("/team").text
+    )
     assert "Invite a member" in team_page
 
     r = _post(alice, "/teams/grasp-lab/invitations", "/teams/grasp-lab", username="bob")
