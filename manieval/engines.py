@@ -58,6 +58,20 @@ class EngineSettings(BaseSettings):
     """An engine of one's own (``unix:///run/podman/podman.sock``): no Podman is started."""
 
 
+def engine_socket(data_dir: Path) -> Path:
+    """Where the Podman that `manieval serve` (and the demo) starts for `data_dir` listens."""
+    return data_dir / "engine" / "podman.sock"
+
+
+def default_engine(data_dir: Path, system_url: str) -> tuple[str, list[str]]:
+    """The engine a command run beside a local server uses when none is named: the Podman of
+    the server's data directory while its socket exists, else `system_url`; and the places
+    looked at, in order, for messages."""
+    local = engine_socket(data_dir)
+    looked = [f"unix://{local}", system_url]
+    return (looked[0] if local.is_socket() else system_url), looked
+
+
 @dataclass
 class Engines:
     """The registry and the engine for one server at `server_url`; `start()`, then `stop()`."""
@@ -181,9 +195,9 @@ class Engines:
         )
 
     def _engine(self) -> Supervised:
-        base = self.home / "engine"
+        path = engine_socket(self.home)
+        base = path.parent
         base.mkdir(parents=True, exist_ok=True)
-        path = base / "podman.sock"
         self.engine_url = f"unix://{path}"
         env = {**os.environ, **self._engine_env(base)}
         binary = shutil.which(ENGINE_BINARY) or ENGINE_BINARY

@@ -50,7 +50,9 @@ def evaluate(
         str | None,
         typer.Option(
             envvar="MANIEVAL_DOCKER_ENGINE_URL",
-            help="Docker-API engine for --image [default: unix:///run/manieval/podman.sock].",
+            help="Docker-API engine for --image [default: the engine of the local server's "
+            "data directory (MANIEVAL_DATA_DIR) while it runs, else "
+            "unix:///run/manieval/podman.sock].",
         ),
     ] = None,
     suite: Annotated[str, typer.Option(help="Suite name (bundled) or YAML path.")] = (
@@ -158,7 +160,7 @@ def _source(
     from worker.containers import DEFAULT_ENGINE_URL, ContainerImage, ExecutorError, pin_local
     from worker.containers import engine as connect
 
-    url = engine or DEFAULT_ENGINE_URL
+    url, looked = (engine, []) if engine else _default_engine(DEFAULT_ENGINE_URL)
     try:
         client = connect(url)
         pinned = pin_local(client, image)
@@ -168,10 +170,31 @@ def _source(
     except ExecutorError as exc:
         raise PolicySourceError(str(exc)) from None
     except Exception as exc:  # the engine is unreachable or refused
-        raise PolicySourceError(f"cannot use the container engine at {url}: {exc}") from None
+        raise PolicySourceError(engine_unusable(url, looked, exc)) from None
     if pinned != image:
         console.print(f"{image} pinned as {pinned}")
     return source
+
+
+def _default_engine(system_url: str) -> tuple[str, list[str]]:
+    """The local demo's (or `manieval serve`'s) engine while it runs, else `system_url`."""
+    from manieval.engines import default_engine
+    from server.kit.settings import default_data_dir
+
+    # Not `Settings()`: a participant has no server configuration (no secret key) to validate.
+    data_dir = os.environ.get("MANIEVAL_DATA_DIR") or default_data_dir()
+    return default_engine(Path(data_dir), system_url)
+
+
+def engine_unusable(url: str, looked: list[str], exc: Exception) -> str:
+    """Why --image cannot run: the engine tried, where a default was looked for, what to do."""
+    where = f" (looked for an engine at {' then '.join(looked)})" if looked else ""
+    return (
+        f"cannot use the container engine at {url}{where}: {exc}. Start one (`manieval demo` "
+        "or `manieval serve` starts Podman in its data directory; set MANIEVAL_DATA_DIR to that "
+        "server's) or name one: --engine unix:///PATH/podman.sock or "
+        "MANIEVAL_DOCKER_ENGINE_URL"
+    )
 
 
 def _split(values: list[str] | None) -> list[str] | None:

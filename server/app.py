@@ -19,6 +19,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.accounts import api as accounts_api
 from server.accounts import pages as accounts_pages
+from server.accounts.deps import error_page_viewer
 from server.challenges import api as challenges_api
 from server.challenges import pages as challenges_pages
 from server.kit import pages
@@ -147,7 +148,7 @@ def create_app(
             teams_pages.router,
         ],
     )
-    install_error_handlers(app)
+    install_error_handlers(app, viewer=error_page_viewer)
     mount_api_docs(app)
     install_monitoring(app, sessions, settings)
     return app

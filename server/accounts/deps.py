@@ -6,7 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-from fastapi import Depends, Form, Request
+from fastapi import Depends, Form, Request, Security
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from server.accounts import service as accounts
 from server.kit import security
@@ -23,19 +24,28 @@ class Caller:
     session: Session | None  # set when authenticated by the session cookie
 
 
-def caller(request: Request, db: DBDep) -> Caller:
+# Declares the API token in the OpenAPI document (Swagger's Authorize button) and reads it. Not
+# `auto_error`: the cookie works too, and public routes take anonymous callers.
+bearer = HTTPBearer(
+    scheme_name="apiToken",
+    bearerFormat="mev_...",
+    description="An API token from your account page or `manieval login`.",
+    auto_error=False,
+)
+BearerDep = Annotated[HTTPAuthorizationCredentials | None, Security(bearer)]
+
+
+def caller(request: Request, db: DBDep, credentials: BearerDep) -> Caller:
     """Who is asking: an API token (Authorization: Bearer) or the session cookie.
 
     Cookie-authenticated API writes must carry the CSRF token in the X-CSRF-Token header (the
     web pages check their form field themselves, `posted` below); token requests need none,
     since a browser never attaches them by itself.
     """
-    header = request.headers.get("authorization")
-    if header is not None:
-        scheme, _, value = header.partition(" ")
-        if scheme.lower() != "bearer" or not value.strip():
+    if request.headers.get("authorization") is not None:
+        if credentials is None or not credentials.credentials.strip():
             raise Unauthorized("use 'Authorization: Bearer <token>'")
-        user = accounts.user_for_token(db, plaintext=value.strip())
+        user = accounts.user_for_token(db, plaintext=credentials.credentials.strip())
         if user is None:
             raise Unauthorized("the API token is invalid or revoked")
         db.commit()  # last_used_at
@@ -76,6 +86,14 @@ def viewer(request: Request, db: DBDep) -> Viewer:
 
 
 ViewerDep = Annotated[Viewer, Depends(viewer)]
+
+
+def error_page_viewer(request: Request) -> Viewer:
+    """The viewer of an error page, which has no dependencies: read in a session of its own."""
+    with services(request).sessions() as db:
+        return viewer_for(
+            request, accounts.session_for(db, cookie=request.cookies.get(SESSION_COOKIE))
+        )
 
 
 async def posted(

@@ -196,6 +196,13 @@ def account(
     return _account(request, who, db, notice=NOTICES.get(done, ""))
 
 
+@router.get("/account/tokens")
+def tokens_page() -> Response:
+    """The tokens' form's address, opened as a page (a reload, a bookmark): the account page,
+    where they are listed. A new token's value is never shown again."""
+    return redirect("/account#tokens")
+
+
 @router.post("/account/tokens")
 def create_token(request: Request, who: PostedDep, db: DBDep, name: Text = "") -> Response:
     """A new API token, shown on this response only: it is stored hashed."""

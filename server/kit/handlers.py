@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -12,6 +12,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
+from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
@@ -49,16 +50,32 @@ def readable(error: Mapping[str, Any]) -> str:
     return str(error.get("msg", "invalid"))
 
 
-def install_error_handlers(app: FastAPI) -> None:
+PageViewer = Callable[[Request], pages.Viewer | None]
+"""Who is looking at an error page, read with a database session of its own (None: unknown)."""
+
+
+def install_error_handlers(app: FastAPI, *, viewer: PageViewer | None = None) -> None:
     """Render every error, ours, FastAPI's and Starlette's, as the one error body; and put the
-    request guard (server/kit/limits.py) in front of everything that reads a request."""
+    request guard (server/kit/limits.py) in front of everything that reads a request. Error
+    pages below 500 show the navigation of `viewer`, as every other page does."""
     app.add_middleware(RequestGuard)
 
-    def respond(
+    async def who(request: Request, status: int) -> pages.Viewer | None:
+        if viewer is None or status >= 500 or not pages.wants_html(request):
+            return None  # a 5xx may be the database's: the page then guesses from the cookie
+        try:
+            return await run_in_threadpool(viewer, request)
+        except Exception:
+            log.warning("an error page could not read its viewer", exc_info=True)
+            return None
+
+    async def respond(
         request: Request, status: int, detail: ErrorDetail, headers: dict[str, str] | None = None
     ) -> Response:
         if pages.wants_html(request):
-            page = pages.error_page(request, status, TITLES.get(status, "Error"), detail)
+            page = pages.error_page(
+                request, status, TITLES.get(status, "Error"), detail, who=await who(request, status)
+            )
             page.headers.update(headers or {})
             return page
         body = ErrorBody(error=detail).model_dump(mode="json", exclude_none=True)
@@ -67,7 +84,7 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(AppError)
     async def app_error(request: Request, exc: AppError) -> Response:
         detail = ErrorDetail.model_validate(exc.body()["error"])
-        return respond(request, exc.status, detail, exc.headers())
+        return await respond(request, exc.status, detail, exc.headers())
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> Response:
@@ -76,7 +93,7 @@ def install_error_handlers(app: FastAPI) -> None:
             loc = [str(part) for part in error.get("loc", ()) if part not in ("body", "query")]
             fields[".".join(loc) or "request"] = readable(error)
         detail = ErrorDetail(code="invalid", message="the request is not valid", fields=fields)
-        return respond(request, 422, detail)
+        return await respond(request, 422, detail)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
@@ -85,7 +102,7 @@ def install_error_handlers(app: FastAPI) -> None:
         headers = dict(getattr(exc, "headers", None) or {})
         if exc.status_code == 405:
             headers["Allow"] = allowed_methods(request)
-        return respond(request, exc.status_code, detail, headers)
+        return await respond(request, exc.status_code, detail, headers)
 
     @app.exception_handler(OperationalError)
     @app.exception_handler(InterfaceError)
@@ -99,13 +116,13 @@ def install_error_handlers(app: FastAPI) -> None:
         detail = ErrorDetail(
             code="unavailable", message="the database is unavailable; try again shortly"
         )
-        return respond(request, 503, detail, {"Retry-After": str(DATABASE_RETRY_AFTER_S)})
+        return await respond(request, 503, detail, {"Retry-After": str(DATABASE_RETRY_AFTER_S)})
 
     @app.exception_handler(Exception)
     async def crash(request: Request, exc: Exception) -> Response:
         log.exception("unhandled error", exc_info=exc)
         detail = ErrorDetail(code="internal", message="internal error; it has been logged")
-        return respond(request, 500, detail)
+        return await respond(request, 500, detail)
 
 
 HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")

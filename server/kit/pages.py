@@ -242,11 +242,14 @@ def render(
     return response
 
 
-def error_page(request: Request, status: int, title: str, detail: ErrorDetail) -> HTMLResponse:
-    """The HTML twin of the API's error body, for pages (no database access: it may be down)."""
-    signed_in = bool(request.cookies.get(SESSION_COOKIE))  # a guess: the database may be down
+def error_page(
+    request: Request, status: int, title: str, detail: ErrorDetail, *, who: Viewer | None = None
+) -> HTMLResponse:
+    """The HTML twin of the API's error body, for pages, with the navigation of `who`; without
+    (the database may be down) the session cookie gives a guess."""
+    signed_in = bool(request.cookies.get(SESSION_COOKIE))
     return render(
-        request, None, "error.html", status=status, title=title, detail=detail, signed_in=signed_in
+        request, who, "error.html", status=status, title=title, detail=detail, signed_in=signed_in
     )
 
 

@@ -22,7 +22,8 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 from server.kit.ratelimit import Rate
 
 
-def _default_data_dir() -> Path:
+def default_data_dir() -> Path:
+    """The data directory when MANIEVAL_DATA_DIR names none."""
     return Path(platformdirs.user_data_dir("manieval", appauthor=False))
 
 
@@ -41,7 +42,7 @@ class Settings(BaseSettings):
     dev_mode: bool = False
     """Development/demo mode: allows a missing secret key (an ephemeral one is generated)."""
 
-    data_dir: Path = Field(default_factory=_default_data_dir)
+    data_dir: Path = Field(default_factory=default_data_dir)
     """Where the embedded database, policy logs and videos live."""
 
     database_url: str = ""

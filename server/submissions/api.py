@@ -145,8 +145,9 @@ def submission_episodes(
     page: PageNo = 1,
     per_page: Annotated[int, Query(ge=1, le=1000)] = 200,
 ) -> Page[EpisodeOut]:
-    """Per-episode records (owner and admins). Seeds of secret-seed phases are never shown."""
-    s = get_owned(db, submission_id=submission_id, user=who.user)
+    """Per-episode records (owner and admins; others who may see the submission get 403).
+    Seeds of secret-seed phases are never shown."""
+    s = get_owned(db, submission_id=submission_id, user=who.user, part="episodes")
     rows, total = episode_rows(db, submission=s, page=page, per_page=per_page)
     show_seed = s.phase.public_seeds
     items = [
@@ -171,8 +172,9 @@ def submission_episodes(
 
 @router.get("/submissions/{submission_id}/logs", tags=["submissions"])
 def submission_logs(submission_id: Id, who: CallerDep, db: DBDep) -> LogsOut:
-    """The tail of the policy's stdout/stderr (owner and admins)."""
-    s = get_owned(db, submission_id=submission_id, user=who.user)
+    """The tail of the policy's stdout/stderr (owner and admins; others who may see the
+    submission get 403)."""
+    s = get_owned(db, submission_id=submission_id, user=who.user, part="logs")
     return LogsOut(submission_id=s.id, attempt=s.attempt, log_tail=s.log_tail)
 
 

@@ -192,11 +192,19 @@ def get_visible(db: DB, *, submission_id: int, user: User | None) -> Submission:
     return submission
 
 
-def get_owned(db: DB, *, submission_id: int, user: User | None) -> Submission:
+def get_owned(
+    db: DB, *, submission_id: int, user: User | None, part: str | None = None
+) -> Submission:
     """The submission, with what it is shown with, if `user` owns it or is an admin, else
-    NotFound."""
+    NotFound. With `part` (its owner-only part being asked for, "episodes"), a submission the
+    user may see is Forbidden instead: it exists, and saying "no submission" would be a lie."""
     submission = db.get(Submission, submission_id, options=SHOWN_WITH)
     if submission is None or not owned_or_admin(submission, user):
+        if part is not None and submission is not None and visible_to(submission, user):
+            raise Forbidden(
+                f"submission {submission_id} is public, but its {part} are visible to its "
+                "owner only"
+            )
         raise NotFound(f"no submission {submission_id}")
     return submission
 

@@ -163,7 +163,7 @@ def test_quota_counts_only_what_the_participant_caused(
     assert submit(client, setup["bob"])["status"] == 202  # quotas are per user
 
 
-def test_private_submissions_logs_and_episodes_are_404_for_others(
+def test_private_submissions_are_404_and_public_ones_refuse_their_logs_and_episodes(
     client: TestClient, setup: dict[str, dict[str, str]], db: Session
 ) -> None:
     alice, bob, root = setup["alice"], setup["bob"], setup["judge"]
@@ -179,9 +179,17 @@ def test_private_submissions_logs_and_episodes_are_404_for_others(
     assert client.get(f"{API}/submissions/{qid}", headers=bob).status_code == 200
     for suffix in ("logs", "episodes"):
         for sid in (pid, qid):
-            assert client.get(f"{API}/submissions/{sid}/{suffix}", headers=bob).status_code == 404
-            assert client.get(f"{API}/submissions/{sid}/{suffix}").status_code == 404
             assert client.get(f"{API}/submissions/{sid}/{suffix}", headers=alice).status_code == 200
+        for headers in (bob, {}):  # a stranger and a visitor
+            assert (
+                client.get(f"{API}/submissions/{pid}/{suffix}", headers=headers).status_code == 404
+            )
+            # The public one exists: "no submission" would be a lie, the part is what is refused.
+            r = client.get(f"{API}/submissions/{qid}/{suffix}", headers=headers)
+            assert r.status_code == 403
+            assert r.json()["error"]["message"] == (
+                f"submission {qid} is public, but its {suffix} are visible to its owner only"
+            )
     assert client.post(f"{API}/submissions/{qid}/cancel", headers=bob).status_code == 404
     r = client.patch(f"{API}/submissions/{qid}", json={"public": False}, headers=bob)
     assert r.status_code == 404

@@ -37,6 +37,29 @@ def test_docs_page_uses_local_assets_and_no_inline_script(client: TestClient) ->
         assert len(served.content) > 10_000
 
 
+def test_the_openapi_declares_the_api_token_and_protected_operations_use_it(
+    client: TestClient,
+) -> None:
+    document = client.get("/openapi.json").json()
+    scheme = document["components"]["securitySchemes"]["apiToken"]
+    assert (scheme["type"], scheme["scheme"]) == ("http", "bearer")
+    operations = {
+        (method.upper(), path): op.get("security", [])
+        for path, methods in document["paths"].items()
+        for method, op in methods.items()
+    }
+    for protected in [
+        ("GET", "/api/v1/me"),
+        ("POST", "/api/v1/tokens"),
+        ("POST", "/api/v1/submissions"),
+        ("GET", "/api/v1/submissions/{submission_id}/episodes"),
+        ("POST", "/api/v1/teams"),
+    ]:
+        assert {"apiToken": []} in operations[protected], protected
+    assert operations[("POST", "/api/v1/users")] == []  # registering needs no token
+    assert not any(path.startswith("/internal/") for _, path in operations)  # workers' only
+
+
 def test_mounting_over_fastapis_own_docs_page_is_refused() -> None:
     with pytest.raises(ValueError, match="docs_url=None"):
         mount_api_docs(FastAPI())
@@ -79,6 +102,9 @@ def test_docs_page_lists_the_operations_with_every_other_host_blocked(served: st
         paths = operations.all_inner_texts()
         assert any("/api/v1/challenges/{slug}/leaderboard" in path for path in paths), paths
         expect(page.get_by_role("heading", name=re.compile("^ManiEval"))).to_be_visible()
+        # The API token's scheme is declared: Swagger offers to authorize with it.
+        page.get_by_role("button", name=re.compile("Authorize")).first.click()
+        expect(page.get_by_text("apiToken (http, Bearer)")).to_be_visible()
         browser.close()
     assert elsewhere == [], elsewhere
     assert problems == [], problems

@@ -13,6 +13,7 @@ from server.leaderboard.challenge_page import ScoreHistory
 from server.leaderboard.service import record_points
 from server.models import Challenge, Phase
 from server.standings.entries import refresh
+from server.teams.service import create_team
 from testkit.factories import make_challenge, make_user
 from tests.web.helpers import browser, finished
 
@@ -50,6 +51,7 @@ def test_challenge_page_shows_rules_phases_commitment_quota_and_board(
     assert board_users(html.replace('id="top"', 'id="board"')) == ["alice"]
     assert "Best score over time" in html
     assert 'class="step"' in html
+    assert "This challenge counts per participant, not per team" in html
     anonymous = client.get("/challenges/server-tiny").text
     assert "Your quota" not in anonymous
     assert client.get("/challenges/nope").status_code == 404
@@ -139,3 +141,15 @@ def test_the_demos_visual_challenge_page_says_what_it_runs_and_what_a_policy_see
     assert "<strong>nominal</strong> (nominal)." in rules  # the only condition it runs
     assert "<code>sensor_data/*/rgb</code>" in rules
     assert "<code>extra/tcp_pose</code>" in rules
+
+
+def test_a_team_mode_challenge_says_it_counts_per_team_and_whose_quota_is_shown(
+    client: TestClient, db: Session
+) -> None:
+    make_challenge(db, quota_per_day=3, quota_concurrent=2, teams=True)
+    alice = make_user(db, "alice")
+    create_team(db, user=alice, name="grasp-lab", display_name="Grasp Lab")
+    db.commit()
+    html = browser(client, "alice").get("/challenges/server-tiny").text
+    assert "This challenge counts per team: a team's members share the quota above" in html
+    assert "Your team's quota (grasp-lab): 0 of 3 used" in html

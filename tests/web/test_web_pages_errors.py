@@ -34,21 +34,34 @@ def test_an_error_page_keeps_log_in_and_register_for_visitors(client: TestClient
     assert nav_links(r.text) == ["ManiEval", "Challenges", "Log in", "Register", "API"]
 
 
-def test_an_error_page_offers_the_account_to_someone_signed_in(
+def test_an_error_page_keeps_the_navigation_of_someone_signed_in(
     client: TestClient, db: Session
 ) -> None:
     make_user(db, "alice")
     alice = browser(client, "alice")
-    r = alice.get("/submissions/12345")  # error pages read no database: the cookie tells
-    assert r.status_code == 404
-    assert nav_links(r.text) == [
-        "ManiEval",
-        "Challenges",
-        "My submissions",
-        "Account",
-        "Log out",
-        "API",
-    ]
+    for r in (alice.get("/submissions/12345"), alice.get("/team/leave")):  # a 404, a 405
+        assert r.status_code in (404, 405)
+        assert nav_links(r.text) == [
+            "ManiEval",
+            "Challenges",
+            "My submissions",
+            "Team",
+            "Account (alice)",
+            "Log out",
+            "API",
+        ]
+    stale = browser(client)  # the database says who it is: no one
+    stale.cookies.set("manieval_session", "session_forged_or_expired")
+    r = stale.get("/submissions/12345")
+    assert nav_links(r.text) == ["ManiEval", "Challenges", "Log in", "Register", "API"]
+
+
+def test_a_reload_of_the_new_token_page_as_a_get_is_the_account_page(
+    client: TestClient, db: Session
+) -> None:
+    make_user(db, "alice")
+    r = browser(client, "alice").get("/account/tokens")
+    assert (r.status_code, r.headers["location"]) == (303, "/account#tokens")
 
 
 def test_logout_by_link_asks_first_and_the_form_logs_out(client: TestClient, db: Session) -> None:

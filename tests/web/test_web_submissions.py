@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import update
 from sqlalchemy.orm import Session
 
 from evaluator.results import Abort, Video
 from server.kit.settings import Settings
-from server.models import Challenge, State, Submission
+from server.models import Challenge, EpisodeResultRow, State, Submission
 from testkit.factories import RecordingQueue, make_user
 from tests.web.helpers import browser, csrf_of, finished
 
@@ -214,3 +215,19 @@ def test_the_owner_cancels_and_changes_visibility(
     assert s.state == State.CANCELLED
     assert not s.public
     assert "cancelled by its owner" in people["alice"].get(f"/submissions/{s.id}").text
+
+
+def test_the_at_end_column_shows_only_where_the_suite_measures_it_and_says_what_it_is(
+    db: Session, tiny: Challenge, people: dict[str, TestClient]
+) -> None:
+    s = alice_s(db, tiny)  # episodes that ran to their step limit: both measured
+    measured = people["alice"].get(f"/submissions/{s.id}").text
+    assert '<th scope="col" title="Still solved at the last step">At end</th>' in measured
+    assert "<em>At end</em>: still solved at the last step" in measured
+    # A suite that stops an episode at its first success measures nothing at the end.
+    db.execute(update(EpisodeResultRow).values(success_at_end=None))
+    db.commit()
+    unmeasured = people["alice"].get(f"/submissions/{s.id}").text
+    assert "At end" not in unmeasured
+    assert "success at the last step is not measured" in unmeasured
+    assert "n/a" not in unmeasured

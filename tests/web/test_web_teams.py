@@ -29,6 +29,10 @@ def test_create_invite_accept_and_leave_through_the_forms(client: TestClient, db
     assert r.headers["location"] == "/teams/grasp-lab?done=created"
     team_page = alice.get(r.headers["location"]).text
     assert "Your team is created" in team_page
+    assert (
+        'You are the admin of\n    <a href="/teams/grasp-lab">Grasp Lab</a>'
+        in alice.get("/team").text
+    )
     assert "Invite a member" in team_page
 
     r = _post(alice, "/teams/grasp-lab/invitations", "/teams/grasp-lab", username="bob")
@@ -45,6 +49,7 @@ def test_create_invite_accept_and_leave_through_the_forms(client: TestClient, db
     assert "You joined the team" in shown
     assert "Invite a member" not in shown  # a member, not the admin
     assert "Leave the team" in shown
+    assert "You are a member of" in bob.get("/team").text
     assert '<a href="/teams/grasp-lab">Grasp Lab</a>' in bob.get("/account").text
     assert 'href="/team"' in bob.get("/account").text
 

@@ -11,6 +11,13 @@ document.addEventListener("submit", (event) => {
   }
 });
 
+// A page that answers a form's POST and shows something once (a new API token) takes the
+// address of the page it belongs to: a reload then gets that page instead of resending the form.
+const replaced = document.querySelector("[data-replace-url]");
+if (replaced && window.history.replaceState) {
+  window.history.replaceState(null, "", replaced.dataset.replaceUrl);
+}
+
 // "Copy" buttons for values shown once (new API tokens).
 for (const button of document.querySelectorAll("button[data-copy]")) {
   button.addEventListener("click", () => {
