@@ -189,7 +189,7 @@ admin manieval maniskill
 # username is its owner's namespace in the service's registry: separators only between letters
 # and digits.
 # A user name keeps the case its owner typed, for display; it is matched and unique regardless
-# of case (server/accounts/service.py, migration 0008). A team name is lowercase only: its page
+# of case (server/accounts/service.py, migration 0009). A team name is lowercase only: its page
 # is /teams/{name}.
 USERNAME_GRAMMAR = r"[A-Za-z0-9]+(?:(?:_|__|-+)[A-Za-z0-9]+)*"
 TEAM_NAME_GRAMMAR = r"[a-z0-9]+(?:(?:_|__|-+)[a-z0-9]+)*"

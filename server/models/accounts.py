@@ -28,7 +28,7 @@ class User(Base):
 
 
 # One account per name whatever its case: "Dora" and "dora" are the same person logging in
-# (migration 0008). The name keeps the case it was registered with, for display.
+# (migration 0009). The name keeps the case it was registered with, for display.
 Index("uq_users_username_lower", func.lower(User.username), unique=True)
 
 

@@ -37,7 +37,7 @@ def test_upgrade_check_downgrade_upgrade(engine: Engine) -> None:
 
 def test_names_differing_only_in_case_stop_the_upgrade_and_are_named(engine: Engine) -> None:
     config = alembic_config(engine.url.render_as_string(hide_password=False))
-    command.downgrade(config, "0007")
+    command.downgrade(config, "0008")
     columns = ("username", "email", "password_hash", "is_admin", "created_at")
     users = table("users", *(column(name) for name in columns))
     now = datetime.now(UTC)
