@@ -61,15 +61,12 @@ def admin_create(
     ] = False,
 ) -> None:
     """Create an administrator account (or make an existing user an administrator)."""
-    from sqlalchemy import select
-
     from server.accounts import service as accounts
-    from server.models import User
 
     s = settings()
     sessions = migrated_sessions(s)
     with sessions.begin() as db:
-        existing = db.scalar(select(User).where(User.username == username))
+        existing = accounts.user_named(db, username=username)
         if existing is not None:
             existing.is_admin = True
             console.print(f"{username} is now an administrator")

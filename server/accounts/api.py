@@ -7,7 +7,7 @@ from fastapi import APIRouter, BackgroundTasks, Request, Response
 
 from server.accounts import service as accounts
 from server.accounts import verification
-from server.accounts.deps import CallerDep, UserDep, login_throttle
+from server.accounts.deps import CallerDep, UserDep, login_throttle, registration_throttle
 from server.accounts.mail import announce_mail, duration, letters_for, send_after
 from server.accounts.schemas import (
     EmailChangeIn,
@@ -48,12 +48,12 @@ def _user_out(user: User) -> UserOut:
 
 @router.post("/users", status_code=201)
 def register(body: RegisterIn, request: Request, tasks: BackgroundTasks, db: DBDep) -> UserOut:
-    """Create an account and mail a link to verify its address. Rate-limited per client
-    address."""
-    limit(request, "register")
+    """Create an account and mail a link to verify its address. Every problem with the form
+    comes in one answer; only created accounts count against the per-address limit."""
     settings = services(request).settings
-    user = accounts.register(
+    user = accounts.register_counted(
         db,
+        throttle=registration_throttle(request),
         username=body.username,
         email=body.email,
         password=body.password,

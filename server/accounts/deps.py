@@ -11,7 +11,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from server.accounts import service as accounts
 from server.kit import security
-from server.kit.deps import CSRF_HEADER, SAFE_METHODS, SESSION_COOKIE, DBDep, services
+from server.kit.deps import CSRF_HEADER, SAFE_METHODS, SESSION_COOKIE, DBDep, client_ip, services
 from server.kit.errors import Forbidden, Unauthorized
 from server.kit.pages import Viewer, check_posted, viewer_for
 from server.kit.ratelimit import Rate
@@ -115,4 +115,16 @@ def login_throttle(request: Request) -> accounts.LoginThrottle:
         limiter=svc.limiter,
         per_address=Rate.parse(svc.settings.login_failures_per_address),
         per_account_address=Rate.parse(svc.settings.login_failures_per_account_address),
+    )
+
+
+def registration_throttle(request: Request) -> accounts.RegistrationThrottle:
+    """Where this server counts registrations from the caller's address (docs/server.md,
+    Accounts): accounts at MANIEVAL_REGISTER_RATE, attempts at MANIEVAL_LOGIN_RATE."""
+    svc = services(request)
+    return accounts.RegistrationThrottle(
+        limiter=svc.limiter,
+        accounts=svc.settings.rate("register"),
+        attempts=svc.settings.rate("login"),
+        address=client_ip(request),
     )

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session as DB
 
 from server.accounts import service as accounts
 from server.accounts import verification
-from server.accounts.deps import PostedDep, ViewerDep, login_throttle
+from server.accounts.deps import PostedDep, ViewerDep, login_throttle, registration_throttle
 from server.accounts.mail import duration, letters_for, send_after
 from server.kit.deps import SESSION_COOKIE, DBDep, Id, client_ip, limit, services
 from server.kit.errors import AppError, Invalid, NotFound, Unauthorized
@@ -80,9 +80,9 @@ def register(
     form = {"username": username, "email": email}
     settings = services(request).settings
     try:
-        limit(request, "register")
-        user = accounts.register(
+        user = accounts.register_counted(
             db,
+            throttle=registration_throttle(request),
             username=username,
             email=email,
             password=password,
@@ -91,6 +91,7 @@ def register(
         mail = verification.verification_mail(db, user=user, letters=letters_for(settings, request))
         db.commit()
     except AppError as exc:
+        db.rollback()
         return _form_error(request, who, "register.html", exc, form=form, next=next)
     send_after(tasks, settings, mail)
     return _login_response(request, db, user, next)

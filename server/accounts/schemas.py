@@ -47,14 +47,23 @@ LinkToken = Annotated[
 
 
 class RegisterIn(InBody):
+    """Only sizes are checked here: the server checks the rest itself, so that one answer
+    lists every problem of the form, a taken name or address among them."""
+
     username: str = Field(
-        min_length=3,
-        max_length=32,
-        pattern=USERNAME_PATTERN,
-        description="lowercase letters, digits, '-' and '_'; some names are reserved",
+        max_length=64,
+        description="3 to 32 characters: letters, digits, '-' and '_'; some names are reserved. "
+        "Kept as typed, for display; unique and matched at login regardless of case",
     )
-    email: Email
-    password: NewPassword
+    email: str = Field(
+        max_length=320,
+        description="printable ASCII: one '@', a domain with a dot; surrounding blanks are trimmed",
+    )
+    password: str = Field(
+        max_length=1024,
+        description=f"{security.MIN_PASSWORD_LENGTH} to {security.MAX_PASSWORD_LENGTH} "
+        "characters, at least as strong as the server's minimum zxcvbn score (default 3 of 4)",
+    )
 
 
 class LoginIn(InBody):

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import joinedload
 
 from server.kit import security
-from server.kit.errors import Conflict, Invalid, RateLimited, Unauthorized
+from server.kit.errors import AppError, Conflict, Invalid, RateLimited, Unauthorized
 from server.kit.ratelimit import Rate, RateLimiter
 from server.models import ApiToken, Session, Team, TeamMember, User, utcnow
 
@@ -23,6 +23,11 @@ def normalise_email(email: str) -> str:
     return email.strip().lower()
 
 
+def user_named(db: DB, *, username: str) -> User | None:
+    """The account with this user name, whatever its case ("Dora" is "dora")."""
+    return db.scalar(select(User).where(func.lower(User.username) == username.strip().lower()))
+
+
 def register(
     db: DB,
     *,
@@ -32,26 +37,25 @@ def register(
     admin: bool = False,
     min_score: int = security.DEFAULT_MIN_SCORE,
 ) -> User:
-    """Create an account, or raise Invalid (field problems) / Conflict (name or email taken).
+    """Create an account, or raise Invalid (a field to fix) / Conflict (name or email taken).
 
-    Its address is unverified (server/accounts/verification.py mails the link), except for an
-    administrator's account, which an operator creates and vouches for."""
-    problems: dict[str, str] = {}
-    if (problem := security.validate_username(username)) is not None:
-        problems["username"] = problem
-    email = normalise_email(email)
-    if (problem := validate_email(email)) is not None:
-        problems["email"] = problem
-    if found := security.password_problems(
-        password, username=username, email=email, min_score=min_score
-    ):
-        problems["password"] = " ".join(found)
-    if problems:
-        raise Invalid("the account cannot be created", fields=problems)
-    taken = db.scalar(select(User).where((User.username == username) | (User.email == email)))
-    if taken is not None:
-        field = "username" if taken.username == username else "email"
-        raise Conflict(f"this {field} is already registered", fields={field: "already taken"})
+    Every problem is reported at once, a taken name or address among them: a 422 when some
+    field is malformed, a 409 when the only problem is that the name or address is taken. The
+    name keeps the case it is typed in and is unique regardless of case; surrounding blanks
+    are trimmed. Its address is unverified (server/accounts/verification.py mails the link),
+    except for an administrator's account, which an operator creates and vouches for."""
+    username, email = username.strip(), normalise_email(email)
+    malformed = _field_problems(username, email, password, min_score=min_score)
+    taken: dict[str, str] = {}  # checked only for well-formed fields, so a typo asks nothing
+    if "username" not in malformed and user_named(db, username=username) is not None:
+        taken["username"] = "already taken"
+    if "email" not in malformed and _user_with_email(db, email) is not None:
+        taken["email"] = "already taken"
+    if malformed:
+        raise Invalid("the account cannot be created", fields={**malformed, **taken})
+    if taken:
+        which = "this username and email are" if len(taken) == 2 else f"this {next(iter(taken))} is"
+        raise Conflict(f"{which} already registered", fields=taken)
     user = User(
         username=username,
         email=email,
@@ -68,23 +72,90 @@ def register(
     return user
 
 
+def _field_problems(username: str, email: str, password: str, *, min_score: int) -> dict[str, str]:
+    problems: dict[str, str] = {}
+    if (problem := security.validate_username(username)) is not None:
+        problems["username"] = problem
+    if (problem := validate_email(email)) is not None:
+        problems["email"] = problem
+    if found := security.password_problems(
+        password, username=username, email=email, min_score=min_score
+    ):
+        problems["password"] = " ".join(found)
+    return problems
+
+
+def _user_with_email(db: DB, email: str) -> User | None:
+    return db.scalar(select(User).where(User.email == email))
+
+
+@dataclass(frozen=True)
+class RegistrationThrottle:
+    """Where registrations from one client address are counted (docs/server.md, Accounts)."""
+
+    limiter: RateLimiter
+    accounts: Rate  # accounts created, and answers that an address is taken
+    attempts: Rate  # every attempt: bounds the work one address can make the server do
+    address: str
+
+
+def register_counted(
+    db: DB,
+    *,
+    throttle: RegistrationThrottle,
+    username: str,
+    email: str,
+    password: str,
+    min_score: int,
+) -> User:
+    """`register`, rate-limited so that a typo costs nothing: a rejected form counts only as an
+    attempt, a created account against the address's accounts. A 409 for a taken address
+    counts as an account too, so probing which addresses have accounts stays as slow as it
+    was. The caller commits; on RateLimited it must roll back."""
+    accounts_key = f"register:ip:{throttle.address}"
+    if not (spent := throttle.limiter.peek(accounts_key, throttle.accounts)).allowed:
+        raise _too_many(spent.retry_after)
+    attempt = throttle.limiter.hit(f"register-attempt:ip:{throttle.address}", throttle.attempts)
+    if not attempt.allowed:
+        raise _too_many(attempt.retry_after)
+    try:
+        user = register(db, username=username, email=email, password=password, min_score=min_score)
+    except AppError as exc:
+        if exc.fields.get("email") == "already taken":
+            throttle.limiter.hit(accounts_key, throttle.accounts)
+        raise
+    if not (counted := throttle.limiter.hit(accounts_key, throttle.accounts)).allowed:
+        raise _too_many(counted.retry_after)  # a concurrent registration took the last one
+    return user
+
+
+def _too_many(retry_after: float) -> RateLimited:
+    return RateLimited(
+        f"too many register requests; try again in {retry_after:.0f} s", retry_after=retry_after
+    )
+
+
 def validate_email(email: str) -> str | None:
     """What is wrong with an email address, for its form field; None when nothing is."""
+    if any(c.isspace() for c in email):
+        return "an email address cannot contain spaces"
     if len(email) > 254 or email.count("@") != 1:
         return "enter an email address like name@example.org"
     local, _, domain = email.partition("@")
     if not local or "." not in domain or domain.startswith(".") or domain.endswith("."):
         return "enter an email address like name@example.org"
-    if not email.isascii() or any(c.isspace() or ord(c) < 33 for c in email):
+    if not email.isascii() or any(ord(c) < 33 or ord(c) == 127 for c in email):
         return "the email address may only contain printable ASCII characters"
     return None
 
 
 def find_account(db: DB, *, login: str) -> User | None:
-    """The account a login names, by its username or its email address."""
+    """The account a login names, by its username (whatever its case) or its email address."""
     login = login.strip()
     return db.scalar(
-        select(User).where((User.username == login) | (User.email == normalise_email(login)))
+        select(User).where(
+            (func.lower(User.username) == login.lower()) | (User.email == normalise_email(login))
+        )
     )
 
 

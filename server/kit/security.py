@@ -188,7 +188,11 @@ admin manieval maniskill
 # A registry repository's path component (the OCI distribution grammar, without '.'), since a
 # username is its owner's namespace in the service's registry: separators only between letters
 # and digits.
-USERNAME_GRAMMAR = r"[a-z0-9]+(?:(?:_|__|-+)[a-z0-9]+)*"
+# A user name keeps the case its owner typed, for display; it is matched and unique regardless
+# of case (server/accounts/service.py, migration 0009). A team name is lowercase only: its page
+# is /teams/{name}.
+USERNAME_GRAMMAR = r"[A-Za-z0-9]+(?:(?:_|__|-+)[A-Za-z0-9]+)*"
+TEAM_NAME_GRAMMAR = r"[a-z0-9]+(?:(?:_|__|-+)[a-z0-9]+)*"
 _USERNAME = re.compile(USERNAME_GRAMMAR)
 
 # Names that would let an account pass for the service, its staff, or a URL of the site.
@@ -210,10 +214,10 @@ def validate_username(name: str) -> str | None:
         return "A username must be 3 to 32 characters long."
     if not _USERNAME.fullmatch(name):
         return (
-            "A username may contain only lowercase letters a-z, digits, '-' and '_', "
+            "A username may contain only letters a-z and A-Z, digits, '-' and '_', "
             "must start and end with a letter or a digit, and may not have '_' next to '-'."
         )
-    if name in RESERVED_USERNAMES:
+    if name.lower() in RESERVED_USERNAMES:
         return "This username is reserved; choose another."
     return None
 

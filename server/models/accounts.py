@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import Boolean, ForeignKey, String
+from sqlalchemy import Boolean, ForeignKey, Index, String, func
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from server.models.base import Base, utcnow
@@ -25,6 +25,11 @@ class User(Base):
     @property
     def email_verified(self) -> bool:
         return self.email_verified_at is not None
+
+
+# One account per name whatever its case: "Dora" and "dora" are the same person logging in
+# (migration 0009). The name keeps the case it was registered with, for display.
+Index("uq_users_username_lower", func.lower(User.username), unique=True)
 
 
 class ApiToken(Base):

@@ -113,7 +113,7 @@ def authenticate(db: DB, *, settings: Settings, username: str, password: str) ->
             return Grantee(subject=settings.registry_pull_user, namespace=None, pull_anywhere=True)
         raise RegistryUnauthorized("wrong user name or password for the registry")
     user = accounts.user_for_token(db, plaintext=password)
-    if user is None or user.username != username.lower():
+    if user is None or user.username.lower() != username.lower():
         raise RegistryUnauthorized(
             "log in to the registry with your ManiEval user name and an API token "
             "(manieval login, or the Tokens page)"

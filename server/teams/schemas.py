@@ -17,8 +17,7 @@ TeamName = Annotated[
         min_length=3,
         max_length=32,
         pattern=TEAM_NAME_PATTERN,
-        description="lowercase letters, digits, '-' and '_' (as user names): the team's page "
-        "is /teams/{name}",
+        description="lowercase letters, digits, '-' and '_': the team's page is /teams/{name}",
     ),
 ]
 Username = Annotated[str, Field(min_length=3, max_length=32, pattern=USERNAME_PATTERN)]

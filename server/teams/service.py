@@ -23,15 +23,16 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import joinedload
 
+from server.accounts import service as accounts
 from server.kit.errors import Conflict, Forbidden, Invalid, NotFound
 from server.kit.schemas import text_problem
-from server.kit.security import RESERVED_USERNAMES, USERNAME_GRAMMAR
+from server.kit.security import RESERVED_USERNAMES, TEAM_NAME_GRAMMAR
 from server.models import Team, TeamInvitation, TeamMember, User, utcnow
 from server.standings.entries import refresh_member, release_team
 from server.teams import locks
 
-TEAM_NAME_PATTERN = rf"^{USERNAME_GRAMMAR}$"
-"""A team's name: written as user names are (lowercase letters, digits, '-' and '_')."""
+TEAM_NAME_PATTERN = rf"^{TEAM_NAME_GRAMMAR}$"
+"""A team's name: lowercase letters, digits, '-' and '_' (a user name may also hold capitals)."""
 _TEAM_NAME = re.compile(TEAM_NAME_PATTERN)
 DISPLAY_NAME_MAX = 64
 MAX_PENDING = 50
@@ -189,7 +190,7 @@ def invite(db: DB, *, admin: User, team: Team, username: str) -> TeamInvitation:
     revoked)."""
     team = _locked(db, team)  # serialises the team's invitations: the limit below is exact
     _require_admin(db, team=team, user=admin)
-    invitee = db.scalar(select(User).where(User.username == username))
+    invitee = accounts.user_named(db, username=username)
     if invitee is None:
         raise NotFound(f"no user {username!r}", fields={"username": "no such user"})
     if locks.team_id_of(db, user_id=invitee.id) == team.id:
@@ -297,7 +298,8 @@ def leave(db: DB, *, user: User) -> Team | None:
 
 def remove(db: DB, *, admin: User, team: Team, username: str) -> None:
     """The team's admin removes a member (to leave, the admin uses `leave`)."""
-    member_id = db.scalar(select(User.id).where(User.username == username))
+    member = accounts.user_named(db, username=username)
+    member_id = None if member is None else member.id
     if member_id is not None and member_id != admin.id:
         locks.hold(db, users={member_id}, teams={team.id})
     team = _locked(db, team)
