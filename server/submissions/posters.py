@@ -1,12 +1,12 @@
 """Poster images of episode videos: the first frame (the scene after the reset) as a small JPEG,
 so that a `<video>` shows the scene before it is played (iOS Safari loads no frame until then).
 
-A poster is made when it is first asked for and kept beside its video
-(``<name>.poster.jpg``), not when a worker uploads the video: Kubernetes Jobs write videos
-straight into the video directory, past the upload. It is written to a temporary file and
-renamed, so concurrent first requests each leave a whole file. A video no poster can be made of
-(corrupt, truncated, not an MP4) leaves an empty file there, so that it is not decoded again and
-its page leaves the poster out. docs/videos.md.
+A poster is made when it is first asked for and kept beside its video (``<name>.poster.jpg``,
+with the video's modification time), not when a worker uploads the video: Kubernetes Jobs write
+videos straight into the video directory, past the upload. It is written to a temporary file
+and renamed, so concurrent first requests each leave a whole file. A video no poster can be
+made of (corrupt, truncated, not an MP4) leaves an empty file there, so that it is not decoded
+again and its page leaves the poster out. docs/videos.md.
 
 Only videos `VideoStore.path` returned are decoded (regular files of a video's name inside the
 video directory), and only when they are no larger than the store accepts and start as an MP4
@@ -58,11 +58,15 @@ def known_to_fail(video: Path) -> bool:
 
 def poster(*, video: Path, max_bytes: int) -> Path | None:
     """The video's poster, made on first request and then kept; None when none can be made."""
+    if ffmpeg() is None:  # nothing to remember: the video may be fine
+        return None
     if (kept := _kept(video)) is None:
         with _decoding:
             if (kept := _kept(video)) is None:  # not made while this request waited
                 try:
-                    _write(poster_file(video), _first_frame(video, max_bytes=max_bytes))
+                    made = video.stat().st_mtime_ns  # before decoding: a newer video is remade
+                    data = _first_frame(video, max_bytes=max_bytes)
+                    _write(poster_file(video), data, mtime_ns=made)
                 except OSError as exc:  # a read-only or full volume: no poster, the video plays
                     log.warning("cannot keep the poster of %s: %s", video, exc)
                     return None
@@ -72,12 +76,14 @@ def poster(*, video: Path, max_bytes: int) -> Path | None:
 
 def _kept(video: Path) -> os.stat_result | None:
     """The kept poster's status (size 0: none can be made), or None when there is none up to
-    date (missing, older than the video, or not a regular file: never follow a planted link)."""
+    date (missing, not a regular file: never follow a planted link, or not carrying the video's
+    modification time: made of an earlier video of that name; the time is copied, not
+    compared, since pods on other machines write the videos by their own clocks)."""
     try:
         kept, made = poster_file(video).lstat(), video.stat()
     except OSError:
         return None
-    if not stat.S_ISREG(kept.st_mode) or kept.st_mtime_ns < made.st_mtime_ns:
+    if not stat.S_ISREG(kept.st_mode) or kept.st_mtime_ns != made.st_mtime_ns:
         return None
     return kept
 
@@ -112,12 +118,14 @@ def _first_frame(video: Path, *, max_bytes: int) -> bytes:
     return out
 
 
-def _write(path: Path, data: bytes) -> None:
-    """Write `path` whole or not at all: a temporary file beside it, then a rename."""
+def _write(path: Path, data: bytes, *, mtime_ns: int) -> None:
+    """Write `path` whole or not at all (a temporary file beside it, then a rename), modified
+    at `mtime_ns`."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+        os.utime(tmp, ns=(mtime_ns, mtime_ns))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
