@@ -5,11 +5,13 @@ episode's seed (null in secret-seed phases), success and steps. docs/videos.md.
 
 from __future__ import annotations
 
+from pathlib import Path as FilePath
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Request
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field, ValidationError
+from sqlalchemy.orm import Session
 
 from evaluator.results import EpisodeResult, EvaluationResult
 from evaluator.video import video_name
@@ -17,7 +19,8 @@ from server.accounts.deps import CallerDep
 from server.kit.deps import DBDep, Id
 from server.kit.errors import ERROR_RESPONSES, NotFound
 from server.kit.settings import Settings
-from server.models import Submission
+from server.models import Submission, User
+from server.submissions import posters
 from server.submissions.deps import services
 from server.submissions.service import get_visible
 from server.submissions.video_store import MEDIA_TYPE, VideoStore
@@ -38,6 +41,10 @@ class VideoOut(BaseModel):
     steps: int
     failure: str | None
     url: str = Field(description="the MP4 (H.264), with the same access rules; Range supported")
+    poster: str | None = Field(
+        description="a JPEG of its first frame, with the same access rules; null when the video "
+        "is known to be unreadable or the server has no ffmpeg"
+    )
 
 
 class VideosOut(BaseModel):
@@ -71,6 +78,7 @@ def videos_of(*, submission: Submission, store: VideoStore) -> list[VideoOut]:
         for e in task.episodes
     }
     show_seed = submission.phase.public_seeds
+    has_ffmpeg = posters.ffmpeg() is not None
     out = []
     for video in result.videos:
         episode = episodes.get((video.condition, video.env_id, video.episode))
@@ -92,6 +100,9 @@ def videos_of(*, submission: Submission, store: VideoStore) -> list[VideoOut]:
                 steps=episode.steps,
                 failure=episode.failure_reason,
                 url=f"/api/v1/submissions/{submission.id}/videos/{name}",
+                poster=f"/api/v1/submissions/{submission.id}/videos/{name}/poster"
+                if has_ffmpeg and not posters.known_to_fail(stored)
+                else None,
             )
         )
     return out
@@ -107,6 +118,19 @@ def submission_videos(submission_id: Id, who: CallerDep, request: Request, db: D
     )
 
 
+def listed_video(
+    db: Session, *, submission_id: int, name: str, user: User | None, store: VideoStore
+) -> FilePath:
+    """The stored file of one listed video of the current attempt, to whoever may see the
+    submission; NotFound otherwise (for anyone else, as if the submission did not exist)."""
+    s = get_visible(db, submission_id=submission_id, user=user)
+    listed = {v.url.rsplit("/", 1)[-1] for v in videos_of(submission=s, store=store)}
+    path = store.path(submission_id=s.id, attempt=s.attempt, name=name)
+    if name not in listed or path is None:
+        raise NotFound(f"no video {name!r}")
+    return path
+
+
 @router.get(
     "/submissions/{submission_id}/videos/{name}",
     tags=["submissions"],
@@ -117,10 +141,24 @@ def submission_video(
     submission_id: Id, name: VideoName, who: CallerDep, request: Request, db: DBDep
 ) -> FileResponse:
     """One episode video of the current attempt, as MP4 (Range requests for seeking)."""
-    s = get_visible(db, submission_id=submission_id, user=who.user)
     store = video_store(services(request).settings)
-    listed = {v.url.rsplit("/", 1)[-1] for v in videos_of(submission=s, store=store)}
-    path = store.path(submission_id=s.id, attempt=s.attempt, name=name)
-    if name not in listed or path is None:
-        raise NotFound(f"no video {name!r}")
+    path = listed_video(db, submission_id=submission_id, name=name, user=who.user, store=store)
     return FileResponse(path, media_type=MEDIA_TYPE, headers={"Cache-Control": "private"})
+
+
+@router.get(
+    "/submissions/{submission_id}/videos/{name}/poster",
+    tags=["submissions"],
+    response_class=FileResponse,
+    responses={200: {"content": {posters.MEDIA_TYPE: {}}, "description": "its first frame"}},
+)
+def submission_video_poster(
+    submission_id: Id, name: VideoName, who: CallerDep, request: Request, db: DBDep
+) -> FileResponse:
+    """The first frame of one episode video, as JPEG (made on first request, then kept)."""
+    store = video_store(services(request).settings)
+    path = listed_video(db, submission_id=submission_id, name=name, user=who.user, store=store)
+    poster = posters.poster(video=path, max_bytes=store.max_bytes)
+    if poster is None:
+        raise NotFound(f"no poster can be made of video {name!r}")
+    return FileResponse(poster, media_type=posters.MEDIA_TYPE, headers={"Cache-Control": "private"})

@@ -9,6 +9,7 @@ steps) keep the rendering cost low.
 
 from __future__ import annotations
 
+import io
 import socket
 import time
 from collections.abc import Iterator
@@ -17,7 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
+from PIL import Image
 
 from manieval.service import Service
 from server.challenges.service import ChallengeOptions, load_challenge
@@ -155,6 +158,7 @@ def test_the_worker_records_the_first_episode_and_the_server_keeps_it_per_attemp
         "steps": first["steps"],
         "failure": None,
         "url": f"{API}/submissions/{recorded.private_dev}/videos/{NAME}",
+        "poster": f"{API}/submissions/{recorded.private_dev}/videos/{NAME}/poster",
     }
     assert first["seed"] == 0
     assert len(imageio.mimread(stored)) == first["steps"] + 1  # the reset state first
@@ -225,6 +229,15 @@ def test_the_owner_plays_the_episode_on_the_submission_page(recorded: Recorded, 
         expect(section).to_contain_text("Seed")
         video = section.locator("video")
         expect(video).to_have_count(1)
+        poster = f"/api/v1/submissions/{recorded.private_dev}/videos/{NAME}/poster"
+        expect(video).to_have_attribute("poster", poster)
+        # The rendered reset scene, not a black frame: what the page shows before play.
+        shown = page.request.get(f"{recorded.url}{poster}")
+        assert shown.status == 200
+        assert shown.headers["content-type"] == "image/jpeg"
+        image = Image.open(io.BytesIO(shown.body()))
+        assert image.size == (512, 512)  # the task camera's own size (no video_size)
+        assert np.asarray(image).std() > 10
         page.wait_for_function(
             "document.querySelector('.videos video').readyState >= 2", timeout=60_000
         )
