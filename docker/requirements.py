@@ -20,9 +20,9 @@ from pathlib import Path
 
 PYPROJECT = Path(__file__).resolve().parent.parent / "pyproject.toml"
 SDK = "manieval-sdk"
-# imageio-ffmpeg is not among them: the server decodes the first frame of episode videos for
-# their posters (server/submissions/posters.py), with the ffmpeg binary it ships.
-SIMULATOR_ONLY = frozenset({"torch", "mani-skill", "sapien", "gymnasium", "imageio"})
+SIMULATOR_ONLY = frozenset(
+    {"torch", "mani-skill", "sapien", "gymnasium", "imageio", "imageio-ffmpeg"}
+)
 ROLES = ("control-plane", "evaluator")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*")
 
