@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from itertools import pairwise
 from typing import TypeVar
 
 from evaluator.stats import mcnemar_exact_p
@@ -136,7 +137,7 @@ def tie_groups(
     """Group numbers (1, 2, ...) for entries in rank order: an entry starts a new group when
     the difference from the one above it is significant after Holm's correction over all the
     adjacent comparisons; otherwise it shares the group above."""
-    adjacent = [p_value(above, below) for above, below in zip(ranked, ranked[1:], strict=False)]
+    adjacent = [p_value(above, below) for above, below in pairwise(ranked)]
     groups = [1] if ranked else []
     for separated in holm_rejections(adjacent, alpha=alpha):
         groups.append(groups[-1] + int(separated))
