@@ -61,7 +61,9 @@ class PairedTable:
 
     def count(self, a: bool, b: bool) -> PairedTable:
         """This table with one more pair whose outcomes are `a` and `b`."""
-        return self + PairedTable(int(a and b), int(a and not b), int(b and not a), int(not a | b))
+        return self + PairedTable(
+            int(a and b), int(a and not b), int(b and not a), int(not (a or b))
+        )
 
 
 @dataclass(frozen=True)
