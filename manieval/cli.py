@@ -18,7 +18,7 @@ from typing import Any
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from manieval import account, participant, push, teams
+from manieval import account, compare, participant, push, teams
 from manieval.errors import ExitCode
 from manieval.evaluate import evaluate
 
@@ -137,6 +137,7 @@ for command in (
     participant.logs,
     participant.cancel,
     participant.leaderboard,
+    compare.compare,
 ):
     app.command(rich_help_panel=PARTICIPATE)(command)
 app.add_typer(teams.app, name="team", rich_help_panel=PARTICIPATE)

@@ -26,6 +26,7 @@ READ_S = 30.0
 # Submitting resolves the image through its registry (several requests, each with its own
 # server-side timeout): give it longer than a plain read.
 SUBMIT_READ_S = 120.0
+EPISODES_PAGE = 1000  # the most the episodes endpoint gives per page
 
 JSON = dict[str, Any]
 
@@ -305,6 +306,18 @@ class Client:
             params["challenge"] = challenge
         items: list[JSON] = self.call("GET", "/submissions", params=params)["items"]
         return items
+
+    def episodes(self, submission_id: int) -> list[JSON]:
+        """Every episode record of the current attempt, all pages (owner and admins only)."""
+        items: list[JSON] = []
+        page = 1
+        while True:
+            params: dict[str, str | int] = {"page": page, "per_page": EPISODES_PAGE}
+            found = self.call("GET", f"/submissions/{submission_id}/episodes", params=params)
+            items += found["items"]
+            if not found["items"] or len(items) >= found["total"]:
+                return items
+            page += 1
 
     def logs(self, submission_id: int) -> JSON:
         result: JSON = self.call("GET", f"/submissions/{submission_id}/logs")

@@ -40,7 +40,14 @@ def imported_by(*args: str) -> set[str]:
 
 
 @pytest.mark.parametrize(
-    "args", [["--help"], ["status", "--help"], ["submit", "--help"], ["evaluate", "--help"]]
+    "args",
+    [
+        ["--help"],
+        ["status", "--help"],
+        ["submit", "--help"],
+        ["evaluate", "--help"],
+        ["compare", "--help"],
+    ],
 )
 def test_help_imports_nothing_heavy(args: list[str]) -> None:
     assert imported_by(*args) & HEAVY == set()
