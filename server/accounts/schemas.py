@@ -50,17 +50,21 @@ class RegisterIn(InBody):
     """Only sizes are checked here: the server checks the rest itself, so that one answer
     lists every problem of the form, a taken name or address among them."""
 
+    # The rules are stated to clients (the schema) but checked by the server, not here.
     username: str = Field(
         max_length=64,
         description="3 to 32 characters: letters, digits, '-' and '_'; some names are reserved. "
         "Kept as typed, for display; unique and matched at login regardless of case",
+        json_schema_extra={"pattern": USERNAME_PATTERN, "minLength": 3, "maxLength": 32},
     )
     email: str = Field(
         max_length=320,
         description="printable ASCII: one '@', a domain with a dot; surrounding blanks are trimmed",
+        json_schema_extra={"format": "email"},
     )
     password: str = Field(
         max_length=1024,
+        json_schema_extra={"minLength": security.MIN_PASSWORD_LENGTH},
         description=f"{security.MIN_PASSWORD_LENGTH} to {security.MAX_PASSWORD_LENGTH} "
         "characters, at least as strong as the server's minimum zxcvbn score (default 3 of 4)",
     )

@@ -125,7 +125,7 @@ def test_every_json_text_field_documents_what_it_refuses(client: TestClient) -> 
 def test_the_registration_body_states_its_rules(client: TestClient) -> None:
     schema = client.get("/openapi.json").json()["components"]["schemas"]["RegisterIn"]
     props = schema["properties"]
-    assert props["username"]["pattern"] == "^[a-z0-9]+(?:(?:_|__|-+)[a-z0-9]+)*$"
+    assert props["username"]["pattern"] == "^[A-Za-z0-9]+(?:(?:_|__|-+)[A-Za-z0-9]+)*$"
     assert (props["username"]["minLength"], props["username"]["maxLength"]) == (3, 32)
     assert props["email"]["format"] == "email"
     assert props["password"]["minLength"] == 10
