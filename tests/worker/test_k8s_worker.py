@@ -911,7 +911,12 @@ def test_a_rollout_never_runs_more_jobs_than_the_quota_holds(
         time.sleep(0.02)
     assert [run.wait() for run in runs] == [State.SUCCEEDED] * 4
     assert max(live) <= 2
-    assert [e for e in apiserver.events if e.get("reason") == "FailedCreate"] == []
+    # Two workers may see the same room at once (a look at the quotas, then a create; on a
+    # busy machine it happens): the quota refuses the later Job's pods, and its worker takes
+    # the Job back and makes it again once there is room (`_make_room`). Whatever the timing,
+    # all four ran and never more pods than the quota holds; a refusal is the quota's only.
+    refused = [e for e in apiserver.events if e.get("reason") == "FailedCreate"]
+    assert all("exceeded quota" in e["message"] for e in refused), refused
 
 
 def test_a_cancel_while_waiting_for_room_creates_no_job(
