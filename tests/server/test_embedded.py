@@ -7,7 +7,6 @@ from __future__ import annotations
 import signal
 import socket
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,7 @@ from server.kit.settings import Settings
 from server.models import Cause, Submission, Transition
 from server.submissions.work import end_stopped
 from testkit.factories import PASSWORD, embedded_database, token_for
+from testkit.waiting import poll
 from testkit.workers import server_api, worker_settings
 from tests.cli.conftest import running_server
 from worker.embedded import EmbeddedWorker
@@ -80,26 +80,34 @@ def wait_final(
     sid: int,
     timeout: float = 240,
 ) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        body: dict[str, Any] = client.get(f"{API}/submissions/{sid}", headers=headers).json()
-        if body["state"] in FINAL:
-            return body
-        time.sleep(0.2)
-    raise AssertionError(f"submission {sid} did not finish in {timeout} s")
+    return poll(
+        lambda: submission(client, headers, sid),
+        lambda body: body["state"] in FINAL,
+        f"submission {sid} to end",
+        timeout=timeout,
+    )
+
+
+def submission(client: httpx.Client, headers: dict[str, str], sid: int) -> dict[str, Any]:
+    body: dict[str, Any] = client.get(f"{API}/submissions/{sid}", headers=headers).json()
+    return body
 
 
 def wait_running(
     client: httpx.Client, headers: dict[str, str], sid: int, *, attempt: int = 1
 ) -> dict[str, Any]:
-    deadline = time.monotonic() + 180
-    while True:
-        body: dict[str, Any] = client.get(f"{API}/submissions/{sid}", headers=headers).json()
-        if body["state"] == "running" and body["attempt"] == attempt:
-            return body
+
+    def running(body: dict[str, Any]) -> bool:
         assert body["state"] not in FINAL, body
-        assert time.monotonic() < deadline, body
-        time.sleep(0.05)
+        return body["state"] == "running" and body["attempt"] == attempt
+
+    return poll(
+        lambda: submission(client, headers, sid),
+        running,
+        f"submission {sid}'s attempt {attempt} to run",
+        timeout=180,
+        every=0.05,
+    )
 
 
 def test_local_policy_runs_to_succeeded_and_reaches_the_leaderboard(
@@ -144,12 +152,14 @@ def test_cancel_stops_a_running_evaluation(embedded: httpx.Client, service: Serv
     )
     sid = r.json()["id"]
     body = wait_running(embedded, headers, sid)
-    deadline = time.monotonic() + 300  # a busy machine's first episode, and its report
-    while not (body.get("progress") or {}).get("done"):
-        assert time.monotonic() < deadline, body
+
+    def one_done(body: dict[str, Any]) -> bool:
         assert body["state"] == "running", body
-        time.sleep(0.2)
-        body = embedded.get(f"{API}/submissions/{sid}", headers=headers).json()
+        return bool((body.get("progress") or {}).get("done"))
+
+    body = poll(  # a busy machine's first episode, and its report
+        lambda: submission(embedded, headers, sid), one_done, "an episode done", timeout=300
+    )
     done = body["progress"]["done"]
     cancelled = embedded.post(f"{API}/submissions/{sid}/cancel", headers=headers)
     assert cancelled.status_code == 200

@@ -35,6 +35,7 @@ from server.models import Cause, State, Submission, Transition, utcnow
 from server.submissions.reports import report_state
 from server.submissions.work import claim_next, end_restarted, end_stopped
 from testkit.factories import PASSWORD, make_challenge, make_user, queue_submission
+from testkit.waiting import until
 from tests.cli.conftest import (
     REPO,
     LiveServer,
@@ -196,16 +197,18 @@ def _sessions(database: str) -> sessionmaker[Session]:
 def wait_for(
     condition: Callable[[], object], what: str, launched: Launched, timeout: float = 600
 ) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
+
+    def check() -> bool:
+        if condition():
+            return True
         if launched.process.poll() is not None:
             pytest.fail(
                 f"it exited ({launched.process.returncode}) before {what}:\n"
                 f"{launched.output()[-5000:]}"
             )
-        if time.monotonic() > deadline:
-            pytest.fail(f"not {what} within {timeout:.0f} s:\n{launched.output()[-5000:]}")
-        time.sleep(0.25)
+        return False
+
+    until(check, lambda: f"{what}:\n{launched.output()[-5000:]}", timeout=timeout, every=0.25)
 
 
 def submissions(launched: Launched) -> list[Submission]:

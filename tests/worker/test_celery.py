@@ -37,6 +37,7 @@ from server.submissions.outbox import CeleryQueue
 from server.submissions.reports import report_running
 from server.submissions.work import claim_next
 from testkit.factories import PASSWORD, embedded_database, fake_resolve_for
+from testkit.waiting import poll, until
 from tests.worker.celery_workers import (
     WORKER_KEYS,
     add_challenge,
@@ -160,16 +161,9 @@ class Cluster:
         return body
 
     def wait_for(
-        self, sid: int, until: Callable[[dict[str, Any]], bool], timeout: float = 300
+        self, sid: int, done: Callable[[dict[str, Any]], bool], timeout: float = 300
     ) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout
-        body = self.get(sid)
-        while not until(body):
-            if time.monotonic() > deadline:
-                raise AssertionError(f"submission {sid}: waited {timeout} s in vain: {body}")
-            time.sleep(0.2)
-            body = self.get(sid)
-        return body
+        return poll(lambda: self.get(sid), done, f"submission {sid}", timeout=timeout)
 
     def wait_state(self, sid: int, states: set[str], timeout: float = 300) -> dict[str, Any]:
         return self.wait_for(sid, lambda body: body["state"] in states, timeout)
@@ -240,7 +234,9 @@ def cluster(
     # Image submissions are pinned by a registry stand-in (the registry has its own tests).
     cast(FastAPI, service.server.config.app).state.services.resolve = fake_resolve_for(settings)
     assert service.start(), "the server did not start"
-    api = httpx.Client(base_url=f"{service.url}/api/v1", timeout=60)
+    api = httpx.Client(
+        base_url=f"{service.url}/api/v1", timeout=60, limits=httpx.Limits(keepalive_expiry=2.0)
+    )
     r = api.post(
         "/users", json={"username": "alice", "email": "a@example.org", "password": PASSWORD}
     )
@@ -289,20 +285,22 @@ def environment_of(process: subprocess.Popen[bytes]) -> dict[str, str]:
 
 def wait_busy(process: subprocess.Popen[bytes], timeout: float = STOP_S) -> None:
     """Until the worker evaluates (its simulator processes are up)."""
-    deadline = time.monotonic() + timeout
-    while not children(process):
-        if time.monotonic() > deadline:
-            tree = subprocess.run(["ps", "-eo", "pid,ppid,pgid,args"], capture_output=True)
-            raise AssertionError(f"worker {process.pid} evaluates nothing:\n{tree.stdout.decode()}")
-        time.sleep(0.2)
+
+    def tree() -> str:
+        listed = subprocess.run(["ps", "-eo", "pid,ppid,pgid,args"], capture_output=True)
+        return f"worker {process.pid} to evaluate:\n{listed.stdout.decode()}"
+
+    until(lambda: children(process), tree, timeout=timeout, every=0.2)
 
 
 def wait_idle(process: subprocess.Popen[bytes], timeout: float = STOP_S) -> None:
     """Until the worker runs no evaluation any more (none of its processes is left)."""
-    deadline = time.monotonic() + timeout
-    while children(process):
-        assert time.monotonic() < deadline, f"the worker still evaluates: {children(process)}"
-        time.sleep(0.2)
+    poll(
+        lambda: children(process),
+        lambda left: not left,
+        "the worker to evaluate nothing",
+        timeout=timeout,
+    )
 
 
 def test_a_worker_without_database_or_secrets_ends_submissions_in_every_state(
@@ -368,10 +366,11 @@ def test_the_same_wake_up_twice_runs_one_evaluation(cluster: Cluster) -> None:
     assert broker.llen(cluster.settings.celery_queue) == 3
     cluster.start_worker()
     assert cluster.wait_state(sid, FINAL)["state"] == "succeeded"
-    deadline = time.monotonic() + 120
-    while broker.llen(cluster.settings.celery_queue) or broker.hlen("unacked"):
-        assert time.monotonic() < deadline, "the duplicates were never consumed"
-        time.sleep(0.2)
+    until(
+        lambda: not (broker.llen(cluster.settings.celery_queue) or broker.hlen("unacked")),
+        "the duplicates to be consumed",
+        timeout=120,
+    )
     broker.close()
     assert cluster.states(sid) == [State.QUEUED, State.LAUNCHING, State.RUNNING, State.SUCCEEDED]
 

@@ -4,7 +4,6 @@ loopback HTTP, configured by the environment as `manieval serve`'s is), docker e
 from __future__ import annotations
 
 import socket
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
 from testkit.factories import PASSWORD, SUITE, token_for
+from testkit.waiting import poll
 from tests.evaluator.conftest import SCRIPTED
 from tests.server.registry_fixture import LocalRegistry, fixture_registry  # noqa: F401
 from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
@@ -82,20 +82,18 @@ def test_an_image_submission_runs_in_a_container_and_leaves_nothing(
     assert r.status_code == 202, r.text
     assert r.json()["pinned_image"] == pinned
     sid = r.json()["id"]
-    deadline = time.monotonic() + 240
-    while (body := service.get(f"{API}/submissions/{sid}").json())["state"] not in (
-        "succeeded",
-        "failed",
-        "error",
-        "cancelled",
-        "timed_out",
-    ):
-        assert time.monotonic() < deadline, body
-        time.sleep(0.3)
+    body = poll(
+        lambda: service.get(f"{API}/submissions/{sid}").json(),
+        lambda body: body["state"] in ("succeeded", "failed", "error", "cancelled", "timed_out"),
+        f"submission {sid} to end",
+        timeout=240,
+    )
     assert body["state"] == "succeeded", body
     assert {t["condition"] for t in body["tasks"]} == {"nominal", "obs_noise"}
     # The engine removes the container as the run ends, which may be just after the report.
-    deadline = time.monotonic() + 120
-    while left := policy_containers(container_engine, submission=sid, attempt=1):
-        assert time.monotonic() < deadline, left
-        time.sleep(0.2)
+    poll(
+        lambda: policy_containers(container_engine, submission=sid, attempt=1),
+        lambda left: not left,
+        "the policy container's removal",
+        timeout=120,
+    )

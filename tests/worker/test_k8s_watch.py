@@ -4,10 +4,9 @@
 from __future__ import annotations
 
 import json
-import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -19,6 +18,7 @@ from testkit.k8s_double import (
     executor_for,
     running_apiserver,
 )
+from testkit.waiting import until
 from tests.worker.k8s_specs import (
     make_spec,
 )
@@ -43,13 +43,6 @@ def cluster(apiserver: ApiServerDouble) -> Iterator[ClusterWatch]:
     watch.start()
     yield watch
     watch.close()
-
-
-def until(check: Callable[[], object], what: str, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not check():
-        assert time.monotonic() < deadline, f"gave up waiting for {what}"
-        time.sleep(0.02)
 
 
 def get(apiserver: ApiServerDouble, path: str) -> Any:

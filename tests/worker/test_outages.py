@@ -36,6 +36,7 @@ from server.kit.settings import Settings
 from server.models import State, Submission, Transition, utcnow
 from server.submissions.work import assignment
 from testkit.factories import PASSWORD, embedded_database
+from testkit.waiting import poll, until
 from tests.private_postgres import PrivatePostgres
 from tests.worker.celery_workers import add_challenge, celery_worker, wait_ready, worker_environment
 from tests.worker.redis_server import Redis, free_port
@@ -98,7 +99,9 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
             env, queues=settings.celery_queue, policies=REPO / "examples" / "policies", log=log
         )
         wait_ready(worker, log)
-        api = httpx.Client(base_url=f"{service.url}/api/v1", timeout=60)
+        api = httpx.Client(
+            base_url=f"{service.url}/api/v1", timeout=60, limits=httpx.Limits(keepalive_expiry=2.0)
+        )
         r = api.post(
             "/users", json={"username": "alice", "email": "a@example.org", "password": PASSWORD}
         )
@@ -141,22 +144,22 @@ def refused(stack: Stack) -> None:
 
 
 def wait_for(
-    stack: Stack, sid: int, until: Callable[[dict[str, Any]], bool], timeout: float = 300
+    stack: Stack, sid: int, done: Callable[[dict[str, Any]], bool], timeout: float = 300
 ) -> dict[str, Any]:
-    """Poll until `until(body)`; while the database is down the server may only say 503."""
-    deadline = time.monotonic() + timeout
-    body: dict[str, Any] = {}
-    while time.monotonic() < deadline:
+    """Poll until `done(body)`; while the database is down the server may only say 503."""
+
+    def fetch() -> dict[str, Any] | None:
         r = stack.api.get(f"/submissions/{sid}")
         if r.status_code == 200:
-            body = r.json()
-            if until(body):
-                return body
-        else:
-            assert r.status_code == 503, r.text
-            assert "Retry-After" in r.headers
-        time.sleep(0.1)
-    raise AssertionError(f"submission {sid}: waited {timeout} s in vain: {body}")
+            body: dict[str, Any] = r.json()
+            return body
+        assert r.status_code == 503, r.text
+        assert "Retry-After" in r.headers
+        return None
+
+    body = poll(fetch, lambda b: b is not None and done(b), f"submission {sid}", timeout=timeout)
+    assert body is not None
+    return body
 
 
 def final(stack: Stack, sid: int) -> dict[str, Any]:
@@ -212,10 +215,12 @@ def ran_once(stack: Stack, sid: int) -> None:
 def idle(stack: Stack) -> None:
     """Until the worker has taken every wake-up in the broker and acknowledged it."""
     queue = stack.settings.celery_queue
-    deadline = time.monotonic() + 120
-    while stack.broker.llen(queue) or stack.broker.hlen("unacked"):
-        assert time.monotonic() < deadline, "the worker left its wake-ups in the broker"
-        time.sleep(0.1)
+    until(
+        lambda: not (stack.broker.llen(queue) or stack.broker.hlen("unacked")),
+        "the worker to take and acknowledge every wake-up in the broker",
+        timeout=120,
+        every=0.1,
+    )
 
 
 def spool_empty(stack: Stack) -> None:
@@ -277,11 +282,12 @@ def test_a_wake_up_delivered_during_an_outage_is_not_lost(stack: Stack) -> None:
         finally:
             os.killpg(stack.worker.pid, signal.SIGCONT)
         try:
-            deadline = time.monotonic() + 60
-            while stack.broker.llen(queue) or not stack.broker.hlen("unacked"):
-                # the worker takes the wake-up (holding it until its task ends): it cannot claim
-                assert time.monotonic() < deadline, "the worker did not take its wake-up"
-                time.sleep(0.05)
+            # the worker takes the wake-up (holding it until its task ends): it cannot claim
+            until(
+                lambda: not stack.broker.llen(queue) and stack.broker.hlen("unacked"),
+                "the worker to take its wake-up",
+                timeout=60,
+            )
             refused(stack)
             time.sleep(OUTAGE_S)
         finally:
