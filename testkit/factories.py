@@ -21,6 +21,7 @@ from evaluator.results import (
     Versions,
     aggregate_task,
 )
+from evaluator.runner import failed_episode
 from server.accounts import service as accounts
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
@@ -131,16 +132,8 @@ def result_doc(
     ]
     planned = len(episodes) if planned is None else planned
     episodes += [
-        EpisodeResult(
-            index=i,
-            seed=1000 + i,
-            success_once=False,
-            success_at_end=False,
-            steps=0,
-            episode_return=0.0,
-            wall_time_s=0.0,
-            failure="not_run",
-            failure_reason="the evaluation stopped before it",
+        failed_episode(
+            i, 1000 + i, "not_run", "the evaluation stopped before it", at_end_measured=True
         )
         for i in range(len(episodes), planned)
     ]
