@@ -23,6 +23,10 @@ DEFAULT_SERVER = "http://127.0.0.1:8000"
 API = "/api/v1"
 CONNECT_S = 10.0
 READ_S = 30.0
+IDLE_S = 2.0
+"""How long an idle connection is kept for the next call: less than the server's keep-alive
+(uvicorn closes after 5 s), so that no call is sent on a connection the server is closing (the
+call would fail with "connection reset by peer", a race a slow poll meets)."""
 # Submitting resolves the image through its registry (several requests, each with its own
 # server-side timeout): give it longer than a plain read.
 SUBMIT_READ_S = 120.0
@@ -167,6 +171,7 @@ class Client:
             base_url=server,
             headers=headers,
             timeout=httpx.Timeout(READ_S, connect=CONNECT_S),
+            limits=httpx.Limits(keepalive_expiry=IDLE_S),
             transport=transport,
         )
 

@@ -145,6 +145,9 @@ class ServerAPI:
             base_url=f"{settings.server_url}/internal/v1",
             headers={"Authorization": f"Bearer {settings.worker_token.get_secret_value()}"},
             timeout=settings.request_timeout_s,
+            # idle connections go before the server's keep-alive closes them (uvicorn: 5 s),
+            # so that no report is sent on a connection being closed
+            limits=httpx.Limits(keepalive_expiry=2.0),
             transport=transport,
         )
         return cls(
