@@ -46,7 +46,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Any, Concatenate, ParamSpec, TypeVar
+from typing import Any, Concatenate, Literal, ParamSpec, TypeVar
 from urllib.parse import parse_qs, urlsplit
 
 import kubernetes_validate
@@ -62,6 +62,9 @@ POLICY_IMAGE = f"127.0.0.1:5000/alice/policy@{DIGEST}"
 EVALUATOR_IMAGE = f"127.0.0.1:5000/manieval/evaluator@sha256:{'cd' * 32}"
 
 Json = dict[str, Any]
+Controller = Literal["1.29", "1.31"]
+CONTROLLERS: tuple[Controller, ...] = ("1.29", "1.31")
+"""The Job controllers whose ordering the executor's tests run against (`ApiServerDouble`)."""
 _JOBS = re.compile(r"^/apis/batch/v1/namespaces/([^/]+)/jobs(?:/([^/]+))?$")
 _PODS = re.compile(r"^/api/v1/namespaces/([^/]+)/pods(?:/([^/]+)/log)?$")
 _EVENTS = re.compile(r"^/api/v1/namespaces/([^/]+)/events$")
@@ -147,6 +150,14 @@ class ApiServerDouble:
     """Plays the Job controller the moment a Job is created (namespace, name)."""
     expire_continue: bool = False
     """Continue tokens have expired: a list with one answers 410 Gone."""
+    controller: Controller = "1.31"
+    """How the Job controller ends a Job. "1.31" (and later; `delayTerminalCondition()` in
+    pkg/controller/job/job_controller.go, on by default from 1.31): it first writes
+    FailureTarget or SuccessCriteriaMet, ends the Job's running pods (deleted through a
+    terminating phase: a deletionTimestamp while the job-tracking finalizer holds them), and
+    adds Failed or Complete only once none is left terminating (`settle`). "1.29": the
+    terminal condition at once (after a FailureTarget only when the podFailurePolicy failed
+    the Job), and running pods are deleted at once."""
     bookmark_every: float = 1.0
     """Seconds between BOOKMARK events on a watch that allows them."""
     scan_every: float = 0.1
@@ -254,6 +265,7 @@ class ApiServerDouble:
             pods = [p for p in pods if p["status"]["phase"] != "Failed"]  # disrupted: replaced
             for pod in pods:
                 index = int(pod["metadata"]["labels"].get(INDEX_LABEL, "0"))
+                self._evaluator_exits(pod, 0)
                 pod["status"]["phase"] = "Succeeded"
                 pod_name = pod["metadata"]["name"]
                 self.logs[(namespace, pod_name, "evaluator")] = logs[index]
@@ -278,6 +290,7 @@ class ApiServerDouble:
         """The pods failed; the Job fails with `reason`."""
         with self.lock:
             for pod in self._pods_of(namespace, name):
+                self._evaluator_exits(pod, 1)
                 pod["status"]["phase"] = "Failed"
                 index = int(pod["metadata"]["labels"].get(INDEX_LABEL, "0"))
                 if index < len(logs):
@@ -293,7 +306,7 @@ class ApiServerDouble:
         with self.lock:
             for pod in self._pods_of(namespace, name):
                 if pod["status"]["phase"] != "Failed":
-                    del self.pods[(namespace, pod["metadata"]["name"])]
+                    self._end_pod(pod)
             job = self.jobs[(namespace, name)]
             job["status"].update(active=0, ready=0, failed=1)
             message = "Job was active longer than specified deadline"
@@ -415,6 +428,29 @@ class ApiServerDouble:
                         status["lastState"] = {
                             "terminated": {"exitCode": 137, "reason": reason, "finishedAt": None}
                         }
+
+    @_publishes
+    def settle(self, namespace: str, name: str, *, terminal: bool = True) -> None:
+        """Under the 1.31 controller: the kubelet ends the Job's terminating pods, their
+        finalizers go, and the controller adds the terminal condition (Failed or Complete)
+        after the FailureTarget or SuccessCriteriaMet it wrote first. With `terminal` False,
+        only the pods go: the moment a watcher sees them deleted and the Job not yet Failed."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                if pod["metadata"].get("deletionTimestamp"):
+                    del self.pods[(namespace, pod["metadata"]["name"])]
+            job = self.jobs.get((namespace, name))
+            if job is None or not terminal:
+                return  # deleted meanwhile, or the controller has not looked yet
+            conditions = job["status"].get("conditions") or []
+            final = {"FailureTarget": "Failed", "SuccessCriteriaMet": "Complete"}
+            if conditions and conditions[-1]["type"] in final:
+                now = self._now()
+                last = conditions[-1]
+                conditions.append(
+                    last
+                    | {"type": final[last["type"]], "lastProbeTime": now, "lastTransitionTime": now}
+                )
 
     @_publishes
     def finish_deletions(self) -> None:
@@ -918,7 +954,33 @@ class ApiServerDouble:
             "containerStatuses": [running(c) for c in spec["containers"]],
         }
 
+    def _evaluator_exits(self, pod: Json, code: int) -> None:
+        """The evaluator exits with `code`; the kubelet then stops the policy sidecar (sidecars
+        end after the main containers, KEP-753: pkg/kubelet/kuberuntime's termination order).
+        Its SIGTERM does nothing to a `python3` running as PID 1 without a handler, so the
+        kubelet kills it after the grace period: the sidecar's state reads exit code 137,
+        while a crash or OOM kill it had before stays in its lastState."""
+        now = self._now()
+        for status in pod["status"].get("containerStatuses", []):
+            if status["name"] == EVALUATOR:
+                status.update(ready=False, started=False)
+                status["state"] = {
+                    "terminated": {
+                        "exitCode": code,
+                        "reason": "Completed" if code == 0 else "Error",
+                        "finishedAt": now,
+                    }
+                }
+        for status in pod["status"].get("initContainerStatuses", []):
+            if status["name"] == "policy":
+                status.update(ready=False, started=False)
+                status["state"] = {
+                    "terminated": {"exitCode": 137, "reason": "Error", "finishedAt": now}
+                }
+
     def _conclude(self, job: Json, interim: str, final: str, reason: str, message: str) -> None:
+        """The Job's end, in the controller's order (`controller`): under 1.31 the terminal
+        condition waits for `settle`."""
         now = self._now()
         job["status"]["conditions"] = [
             {
@@ -929,8 +991,25 @@ class ApiServerDouble:
                 "lastProbeTime": now,
                 "lastTransitionTime": now,
             }
-            for kind in (interim, final)
+            for kind in self._conditions(interim, final, reason)
         ]
+
+    def _conditions(self, interim: str, final: str, reason: str) -> tuple[str, ...]:
+        if self.controller == "1.31":
+            return (interim,)
+        return (interim, final) if reason == "PodFailurePolicy" else (final,)
+
+    def _end_pod(self, pod: Json) -> None:
+        """The controller deletes a running pod: gone at once under 1.29; under 1.31 it stays
+        terminating (deletionTimestamp set, the job-tracking finalizer on) until `settle`."""
+        meta = pod["metadata"]
+        if self.controller == "1.31":
+            meta.update(
+                deletionTimestamp=self._now(),
+                finalizers=["batch.kubernetes.io/job-tracking"],
+            )
+        else:
+            del self.pods[(meta["namespace"], meta["name"])]
 
 
 class _Server(ThreadingHTTPServer):
@@ -1081,9 +1160,10 @@ def _selects(selector: str, labels: dict[str, str]) -> bool:
 
 
 @contextmanager
-def running_apiserver() -> Iterator[ApiServerDouble]:
-    """A started double, shut down afterwards (wrap it in a fixture)."""
-    with ApiServerDouble() as double:
+def running_apiserver(controller: Controller = "1.31") -> Iterator[ApiServerDouble]:
+    """A started double, shut down afterwards (wrap it in a fixture), its Job controller
+    ending Jobs as `controller`'s does."""
+    with ApiServerDouble(controller=controller) as double:
         yield double
 
 

@@ -17,6 +17,7 @@ from evaluator.results import EpisodeResult, EvaluationResult
 from evaluator.runner import ShardOutcome
 from server.kit.settings import Settings
 from testkit.k8s_double import (
+    CONTROLLERS,
     NAMESPACE,
     ApiServerDouble,
     collect_logs,
@@ -40,9 +41,10 @@ from worker.kubernetes.status import JobStatus, PodView
 STARTED = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
 
 
-@pytest.fixture
-def apiserver() -> Iterator[ApiServerDouble]:
-    with running_apiserver() as double:
+@pytest.fixture(params=CONTROLLERS)
+def apiserver(request: pytest.FixtureRequest) -> Iterator[ApiServerDouble]:
+    """The double, its Job controller ending Jobs in the order of each version (1.29, 1.31+)."""
+    with running_apiserver(request.param) as double:
         yield double
 
 

@@ -37,11 +37,13 @@ from server.models import Cause, Submission, Transition, utcnow
 from server.submissions.service import cancel
 from testkit.factories import SUITE, make_challenge, make_user, queue_submission
 from testkit.k8s_double import (
+    CONTROLLERS,
     EVALUATOR_IMAGE,
     NAMESPACE,
     ApiServerDouble,
     running_apiserver,
 )
+from testkit.waiting import until
 from testkit.workers import worker_settings
 from tests.evaluator.conftest import REPO, SCRIPTED, episode_records
 from tests.worker.k8s_specs import (
@@ -62,9 +64,10 @@ pytestmark = pytest.mark.long
 STARTED = datetime(2026, 5, 1, tzinfo=UTC)
 
 
-@pytest.fixture
-def apiserver() -> Iterator[ApiServerDouble]:
-    with running_apiserver() as double:
+@pytest.fixture(params=CONTROLLERS)
+def apiserver(request: pytest.FixtureRequest) -> Iterator[ApiServerDouble]:
+    """The double, its Job controller ending Jobs in the order of each version (1.29, 1.31+)."""
+    with running_apiserver(request.param) as double:
         yield double
 
 
@@ -142,13 +145,6 @@ def assert_cluster_error(sessions: sessionmaker[Session], sid: int, state: State
     submission = submission_of(sessions, sid)
     assert (submission.state, submission.attempt) == (State.QUEUED, 2)
     return end.reason
-
-
-def until(check: Callable[[], object], what: str, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not check():
-        assert time.monotonic() < deadline, f"gave up waiting for {what}"
-        time.sleep(0.02)
 
 
 @pytest.fixture
@@ -353,6 +349,15 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
             "the evaluation exceeded its time budget",
         ),
         (
+            # From 1.31 the pods go before the Job says Failed: its FailureTarget decides
+            lambda api, name: (
+                api.exceed_deadline(NAMESPACE, name),
+                api.settle(NAMESPACE, name, terminal=False),
+            ),
+            State.TIMED_OUT,
+            "the evaluation exceeded its time budget",
+        ),
+        (
             lambda api, name: api.jobs.pop((NAMESPACE, name)),
             State.QUEUED,  # the cluster's doing: it runs again
             "the evaluation's Job eval-",
@@ -368,7 +373,14 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
             "the evaluation's result could not be read",
         ),
     ],
-    ids=["evaluator-failed", "deadline", "job-vanished", "image-pull", "unreadable"],
+    ids=[
+        "evaluator-failed",
+        "deadline",
+        "deadline-pods-gone-first",
+        "job-vanished",
+        "image-pull",
+        "unreadable",
+    ],
 )
 def test_every_way_a_job_ends_gives_a_final_state_with_a_reason(
     committed_sessions: sessionmaker[Session],

@@ -12,7 +12,7 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any, Literal
 
 from kubernetes.client import V1Job, V1Pod
@@ -78,12 +78,18 @@ class PodView:
 
 
 def job_status(job: V1Job) -> JobStatus:
-    """A Job's phase from its conditions (Complete, Failed) and its ready pods."""
+    """A Job's phase from its conditions and its ready pods.
+
+    The Job controller decides a Job's end before it says so: from Kubernetes 1.31 it writes
+    SuccessCriteriaMet or FailureTarget, ends the pods still running, and adds Complete or
+    Failed (same reason) only once none is left terminating (`delayTerminalCondition` in
+    pkg/controller/job/job_controller.go). The first condition is the decision: the pods'
+    deletion that follows it is the Job's end, not the cluster's doing."""
     status = job.status
     true = {c.type: c for c in (status.conditions or []) if c.status == "True"} if status else {}
-    if "Complete" in true:
+    if "Complete" in true or "SuccessCriteriaMet" in true:
         return JobStatus("succeeded")
-    failed = true.get("Failed")
+    failed = true.get("Failed") or true.get("FailureTarget")
     if failed is not None:
         reason = f"{failed.reason or 'Failed'}: {failed.message or ''}".rstrip(": ")
         phase: Phase = "deadline_exceeded" if failed.reason == "DeadlineExceeded" else "failed"
@@ -136,11 +142,10 @@ def pod_view(pods: list[V1Pod]) -> PodView:
             view = replace(view, unschedulable=_unschedulable(status))
         before = view.evaluating
         view = replace(view, evaluating=False)
-        for container in [
-            *(status.init_container_statuses or []),
-            *(status.container_statuses or []),
-        ]:
-            view = _look(view, container)
+        containers = [*(status.init_container_statuses or []), *(status.container_statuses or [])]
+        evaluator_end = _evaluator_end(containers)
+        for container in containers:
+            view = _look(view, container, evaluator_end)
         started = view.evaluating
         view = replace(view, evaluating=before or started, started=view.started + started)
     return view
@@ -180,7 +185,16 @@ STUCK_REASONS = frozenset(
 """Waiting reasons that do not resolve by waiting (ErrImagePull turns into ImagePullBackOff)."""
 
 
-def _look(view: PodView, container: Any) -> PodView:
+def _evaluator_end(containers: list[Any]) -> datetime | None:
+    """When the pod's evaluator container ended, if it has (datetime.max: it did, untimed)."""
+    for container in containers:
+        state = container.state
+        if container.name == EVALUATOR and state is not None and state.terminated is not None:
+            return state.terminated.finished_at or datetime.max.replace(tzinfo=UTC)
+    return None
+
+
+def _look(view: PodView, container: Any, evaluator_end: datetime | None) -> PodView:
     state, last = container.state, container.last_state
     waiting = state.waiting if state is not None else None
     if view.stuck is None and waiting is not None and waiting.reason in STUCK_REASONS:
@@ -189,14 +203,25 @@ def _look(view: PodView, container: Any) -> PodView:
     if container.name == EVALUATOR and state is not None and (state.running or state.terminated):
         view = replace(view, evaluating=True)
     if container.name == POLICY and view.policy_ended is None:
-        for ended in (
-            state.terminated if state is not None else None,
-            last.terminated if last is not None else None,
-        ):
+        # Its last state first: a crash or OOM kill the sidecar was restarted after. An end at
+        # or after the evaluator's is the kubelet stopping the sidecar (SIGTERM, then a kill
+        # after the grace period: exit 137 from a PID 1 that ignores SIGTERM): not the policy's.
+        # A restart is never the kubelet's stop: the last state always counts.
+        current = state.terminated if state is not None else None
+        if current is not None and _stopped_after(current, evaluator_end):
+            current = None
+        for ended in (last.terminated if last is not None else None, current):
             if ended is not None and (ended.reason == "OOMKilled" or ended.exit_code):
                 view = replace(view, policy_ended=_ending(ended))
                 break
     return view
+
+
+def _stopped_after(ended: Any, evaluator_end: datetime | None) -> bool:
+    """Whether a sidecar's end came once the evaluator had ended (the kubelet's stop)."""
+    if evaluator_end is None:
+        return False
+    return ended.finished_at is None or ended.finished_at >= evaluator_end
 
 
 DISRUPTING_REASONS = frozenset(
