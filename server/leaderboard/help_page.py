@@ -6,6 +6,7 @@ off as everywhere."""
 from __future__ import annotations
 
 import functools
+import itertools
 import re
 from pathlib import Path
 
@@ -32,7 +33,7 @@ def metrics_html() -> Markup:
     """docs/metrics.md as HTML, each heading with its anchor as id."""
     md = MarkdownIt("commonmark", {"html": False}).enable("table").disable("image")
     tokens = md.parse(METRICS.read_text())
-    for opening, inline in zip(tokens, tokens[1:], strict=False):
+    for opening, inline in itertools.pairwise(tokens):
         if opening.type == "heading_open":
             opening.attrSet("id", anchor(inline.content))
     return Markup(md.renderer.render(tokens, md.options, {}))  # html off: escaped

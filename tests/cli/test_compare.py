@@ -144,3 +144,36 @@ def test_compare_refuses_what_it_cannot_pair_or_read(
     assert "ran server-tiny/test" in r.stderr
     r = dave.run("compare", str(mine), str(mine), "--alpha", "1")
     assert r.exit_code == ExitCode.USAGE, r.output
+
+
+def test_the_board_groups_neighbours_as_compare_explains(
+    live: LiveServer, db: Session, tmp_path: Path
+) -> None:
+    ada = participant(live, tmp_path / "ada", "ada")
+    participant(live, tmp_path / "bea", "bea")
+    # Overlapping intervals (65 and 50 of 100) that the paired test separates: two groups.
+    better, worse = paired(both=50, only_a=15, only_b=0, neither=35)
+    a, b = submitted(db, "ada", better), submitted(db, "bea", worse)
+    r = ada.run("leaderboard", "server-tiny")
+    assert r.exit_code == 0, r.output
+    assert [cells[:3] for cells in table_rows(r.stdout)] == [["1", "G1", "ada"], ["2", "G2", "bea"]]
+    r = ada.run("leaderboard", "server-tiny", "--format", "markdown")
+    assert r.exit_code == 0, r.output
+    assert "| 1 | 1 | ada | 0.650 [0.553, 0.736] |" in r.stdout
+    assert "tie groups: McNemar's exact test, Holm\\-corrected, at 0\\.05" in r.stdout
+    r = ada.run("leaderboard", "server-tiny", "--format", "latex")
+    assert r.exit_code == 0, r.output
+    assert r"2 & 2 & bea & 0.500 [0.404, 0.596] & 0.500 [0.404, 0.596] \\" in r.stdout
+    assert ada.run("leaderboard", "server-tiny", "--csv", "--format", "latex").exit_code == (
+        ExitCode.USAGE
+    )
+
+    # An admin may read both submissions' episodes: compare prints the table behind the groups.
+    user = db.scalars(select(User).where(User.username == "ada")).one()
+    user.is_admin = True
+    db.commit()
+    r = ada.run("compare", str(a), str(b))
+    assert r.exit_code == 0, r.output
+    rows = {cells[0]: cells[1:] for cells in table_rows(r.stdout)}
+    assert rows["pooled"] == ["50", "15", "0", "35", "65/100", "50/100", "6.1e-05"]
+    assert f"{a} is better than {b} at 0.05" in r.stdout
