@@ -129,7 +129,8 @@ def test_overlapping_intervals_that_the_paired_test_separates_are_two_groups(
         ("bob", "False", "2"),
     ]
     assert '<span aria-hidden="true">G2</span><span class="visually-hidden">tie group 2:' in html
-    assert "separated from the rank above by the paired test" in html
+    assert 'title="Tie group 1: the first group"' in html
+    assert "the paired test on their shared episodes separates it from rank 1" in html
     assert 'href="/help/metrics#paired-significance"' in html
 
 
