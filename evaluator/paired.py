@@ -7,10 +7,11 @@ by episode. docs/metrics.md, "Paired significance", says why McNemar's exact tes
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+import hashlib
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import pairwise
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from evaluator.stats import mcnemar_exact_p
 
@@ -120,6 +121,86 @@ def _by_key(
             raise ValueError(f"episode {o.key} of {side} is listed twice")
         found[o.key] = o.success
     return found
+
+
+@dataclass(frozen=True)
+class PackedTask:
+    """One task's outcomes of one condition, packed: which (index, seed) keys ran (`keys`, a
+    digest) and which of them succeeded (bit `index` of `successes`)."""
+
+    keys: str
+    count: int
+    successes: int
+
+
+@dataclass(frozen=True)
+class PackedOutcomes:
+    """An evaluation's outcomes of one condition, packed to compare many pairs fast (a board's
+    neighbours): what `compare` counts, as bit counts, when both ran the same keys per task."""
+
+    condition: str
+    tasks: dict[str, PackedTask]
+
+    @classmethod
+    def of(cls, outcomes: Iterable[Outcome], *, condition: str) -> PackedOutcomes:
+        """`outcomes`' episodes of `condition`, packed per task (in the order first seen)."""
+        by_task: dict[str, dict[int, tuple[int | None, bool]]] = {}
+        for key, success in _by_key(outcomes, condition=condition, side="the run").items():
+            _, env_id, index, seed = key
+            if index < 0:
+                raise ValueError(f"episode {key} has a negative index")
+            found = by_task.setdefault(env_id, {})
+            if index in found:
+                raise ValueError(f"episode {env_id} {index} is listed twice, with two seeds")
+            found[index] = (seed, success)
+        tasks = {
+            env_id: PackedTask(
+                keys=_digest(sorted((i, seed) for i, (seed, _) in found.items())),
+                count=len(found),
+                successes=sum(1 << i for i, (_, ok) in found.items() if ok),
+            )
+            for env_id, found in by_task.items()
+        }
+        return cls(condition=condition, tasks=tasks)
+
+    def as_json(self) -> dict[str, Any]:
+        """A form that JSON keeps exactly (the bit mask as hex: it may exceed 2^53)."""
+        tasks = [[name, t.keys, t.count, f"{t.successes:x}"] for name, t in self.tasks.items()]
+        return {"condition": self.condition, "tasks": tasks}
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> PackedOutcomes:
+        tasks = {
+            str(name): PackedTask(str(keys), int(count), int(str(successes), 16))
+            for name, keys, count, successes in data["tasks"]
+        }
+        return cls(condition=str(data["condition"]), tasks=tasks)
+
+
+def _digest(keys: list[tuple[int, int | None]]) -> str:
+    text = ";".join(f"{index}:{seed}" for index, seed in keys)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def compare_packed(a: PackedOutcomes, b: PackedOutcomes) -> PairedComparison | None:
+    """`compare` of the outcomes `a` and `b` were packed from, counted on their bits; None when
+    a task both ran has keys that differ (the seeds changed): compare the outcomes then."""
+    if a.condition != b.condition:
+        raise ValueError(f"cannot pair condition {a.condition!r} with {b.condition!r}")
+    tasks: dict[str, PairedTable] = {}
+    unpaired_a = 0
+    for env_id, ta in a.tasks.items():
+        if (tb := b.tasks.get(env_id)) is None:
+            unpaired_a += ta.count
+            continue
+        if ta.keys != tb.keys:
+            return None
+        both = (ta.successes & tb.successes).bit_count()
+        only_a = (ta.successes & ~tb.successes).bit_count()
+        only_b = (tb.successes & ~ta.successes).bit_count()
+        tasks[env_id] = PairedTable(both, only_a, only_b, ta.count - both - only_a - only_b)
+    unpaired_b = sum(t.count for name, t in b.tasks.items() if name not in a.tasks)
+    return PairedComparison(a.condition, tasks, unpaired_a=unpaired_a, unpaired_b=unpaired_b)
 
 
 def holm_rejections(p_values: Sequence[float], *, alpha: float = ALPHA) -> list[bool]:

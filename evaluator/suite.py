@@ -59,6 +59,10 @@ class Phase(_Strict):
 
     description: str = ""
     seeds: Annotated[PublicSeeds | SecretSeeds, Field(discriminator="kind")]
+    significance_level: float = Field(default=0.05, gt=0, le=0.5)
+    """The family-wise level at which the phase's board separates neighbours into tie groups
+    (McNemar's exact test, Holm's correction: docs/metrics.md, "Paired significance"). How
+    results are read, not what is evaluated: not in the hash."""
 
 
 class Nominal(_Strict):
@@ -265,6 +269,8 @@ class Suite(_Strict):
     def sha256(self) -> str:
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
         content = self.model_dump(mode="json", exclude={"shards", "title", "policy", *RECORDING})
+        for phase in content["phases"].values():
+            del phase["significance_level"]
         for name in _HASHED_WHEN_SET:  # suites that do not use a newer setting keep their hash
             if getattr(self, name) == type(self).model_fields[name].default:
                 del content[name]

@@ -4,6 +4,7 @@ server's public API only; docs/cli.md describes them with their exit codes."""
 
 from __future__ import annotations
 
+import enum
 import sys
 from typing import Annotated, Any, NoReturn
 
@@ -43,6 +44,14 @@ def challenges(server: ServerOption = None, as_json: JsonOption = False) -> None
         render.stdout().print(render.challenges_table(items))
 
 
+class BoardFormat(enum.StrEnum):
+    TABLE = "table"
+    JSON = "json"
+    CSV = "csv"
+    MARKDOWN = "markdown"
+    LATEX = "latex"
+
+
 def leaderboard(
     challenge: Annotated[str, typer.Argument(help="The challenge's name.")],
     phase: Annotated[str, typer.Option(help="The phase.")] = "dev",
@@ -52,16 +61,29 @@ def leaderboard(
     as_csv: Annotated[
         bool, typer.Option("--csv", help="Print CSV, as the server renders it.")
     ] = False,
+    format: Annotated[
+        BoardFormat,
+        typer.Option(
+            "--format",
+            help="table: for the terminal; json, csv: as the server renders them; markdown, "
+            "latex: a table for a paper (success with intervals, tie groups, provenance).",
+        ),
+    ] = BoardFormat.TABLE,
     server: ServerOption = None,
 ) -> None:
     """Show a challenge's leaderboard: the best public submission of each participant."""
-    if as_json and as_csv:
-        raise typer.BadParameter("choose one of --json and --csv", param_hint="--csv")
+    chosen = [f for f, on in ((BoardFormat.JSON, as_json), (BoardFormat.CSV, as_csv)) if on]
+    if format is not BoardFormat.TABLE:
+        chosen.append(format)
+    if len(chosen) > 1:
+        raise typer.BadParameter("choose one of --json, --csv and --format", param_hint="--format")
+    shown = chosen[0] if chosen else BoardFormat.TABLE
+    asked = "json" if shown is BoardFormat.TABLE else shown.value
     with handled(), connect(server, login="none") as client:
         response = client.leaderboard(
-            challenge, phase=phase, page=page, per_page=per_page, format="csv" if as_csv else "json"
+            challenge, phase=phase, page=page, per_page=per_page, format=asked
         )
-    if as_json or as_csv:
+    if shown is not BoardFormat.TABLE:
         render.write_raw(response.content)
         return
     board = response.json()

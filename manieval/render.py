@@ -250,14 +250,19 @@ def leaderboard_table(board: JSON) -> Table:
     table = Table(title=title)
     # A Method column only when a row names one (servers before methods: never).
     methods = any(r.get("method") for r in board["items"])
-    for column in ("rank", "user", *(["method"] if methods else []), "submission", "score"):
-        table.add_column(column, justify="left" if column in ("user", "method") else "right")
+    # Tie groups (servers before them: none), beside the rank they qualify.
+    groups = any(r.get("tie_group") is not None for r in board["items"])
+    for column in ("rank", *(["group"] if groups else []), "user"):
+        table.add_column(column, justify="left" if column == "user" else "right")
+    for column in (*(["method"] if methods else []), "submission", "score"):
+        table.add_column(column, justify="left" if column == "method" else "right")
     for column in (*tasks, *conditions):
         table.add_column(column, justify="right")
     for row in board["items"]:
         rank = "baseline" if row["rank"] is None else str(row["rank"])
         if row.get("tied"):
-            rank = f"={rank}"  # its interval overlaps the row above's (docs/metrics.md)
+            rank = f"={rank}"  # the paired test does not separate it from the row above
+        group_cells = [f"G{row['tie_group']}" if row.get("tie_group") else ""] if groups else []
         task_cells = [
             f"{row['tasks'][t]['success_rate']:.2f}" if t in row["tasks"] else "-" for t in tasks
         ]
@@ -267,6 +272,7 @@ def leaderboard_table(board: JSON) -> Table:
         method_cells = [Text(row.get("method") or "-")] if methods else []
         table.add_row(
             rank,
+            *group_cells,
             _participant(row),
             *method_cells,
             str(row["submission_id"]),

@@ -30,7 +30,7 @@ from server.kit.observability import install_monitoring
 from server.kit.ratelimit import MemoryRateLimiter, RateLimiter
 from server.kit.settings import Settings
 from server.leaderboard import api as leaderboard_api
-from server.leaderboard import challenge_page
+from server.leaderboard import challenge_page, help_page
 from server.leaderboard import pages as leaderboard_pages
 from server.registry import api as registry_api
 from server.services import Services
@@ -142,6 +142,7 @@ def create_app(
             challenge_page.router,
             accounts_pages.router,
             leaderboard_pages.router,
+            help_page.router,
             submit_pages.router,
             submissions_pages.router,
             events.router,

@@ -75,8 +75,12 @@ def load_challenge(
     for name, spec in suite.phases.items():
         phase = existing.pop(name, None)
         if phase is None:
-            phase = Phase(name=name)
+            phase = Phase(name=name, significance_level=spec.significance_level)
             challenge.phases.append(phase)
+        elif phase.significance_level != spec.significance_level:
+            # The tie groups change with the level: readers of the board read it again.
+            phase.significance_level = spec.significance_level
+            phase.leaderboard_version += 1
         phase.public_seeds = isinstance(spec.seeds, PublicSeeds)
         phase.seed_commitment = commitment(suite, name, seed_secret)
         phase.opens_at = options.opens.get(name, phase.opens_at)

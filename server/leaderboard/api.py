@@ -11,8 +11,10 @@ from starlette.concurrency import run_in_threadpool
 from server.kit.deps import PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN
-from server.leaderboard.deps import services
+from server.leaderboard.deps import BoardServices, services
+from server.leaderboard.paper import MEDIA_TYPE, SUFFIX, PaperFormat, paper_table, provenance
 from server.leaderboard.schemas import LeaderboardOut
+from server.leaderboard.snapshot import Snapshot
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
 
@@ -21,7 +23,14 @@ router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
     "/challenges/{slug}/leaderboard",
     tags=["challenges"],
     response_model=LeaderboardOut,
-    responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}}}},
+    responses={
+        200: {
+            "content": {
+                media: {"schema": {"type": "string"}}
+                for media in ("text/csv", *MEDIA_TYPE.values())
+            }
+        }
+    },
 )
 async def leaderboard(
     slug: Annotated[str, FastAPIPath(max_length=64, pattern=SLUG_PATTERN)],
@@ -29,15 +38,18 @@ async def leaderboard(
     phase: Annotated[str, Query(max_length=32)] = "dev",
     page: PageNo = 1,
     per_page: PerPage = 50,
-    format: Literal["json", "csv"] = "json",
+    format: Literal["json", "csv", "markdown", "latex"] = "json",
 ) -> Response:
     """Best public submission per user (per team, in a challenge with team mode on), by score
     (equal scores: the earlier submission first).
 
-    Each row carries its score's 95% interval and `tied`: whether that interval overlaps the
-    one of the ranked row above (docs/metrics.md, "How ties are decided"). `tasks` and
-    `conditions` list the suite's in its order, which every row's dictionaries and the CSV's
-    columns follow.
+    Each row carries its score's 95% interval, its `tie_group` (consecutive rows that McNemar's
+    exact test on their paired episodes, Holm-corrected over the board at the phase's level,
+    does not separate share one) and `tied` (in the group of the ranked row above):
+    docs/metrics.md, "Paired significance". `tasks` and `conditions` list the suite's in its
+    order, which every row's dictionaries and the CSV's columns follow. `markdown` and `latex`
+    give the page as a table for a paper: per-task success and score with intervals, tie
+    groups, and a line of provenance (the result documents' suites and versions).
 
     The most read page of the service: each phase's whole board is kept in memory, brought up
     to date from the rows that changed (at most once every `MANIEVAL_LEADERBOARD_MAX_AGE`
@@ -49,6 +61,13 @@ async def leaderboard(
     if board is None:
         board = await run_in_threadpool(
             lambda: svc.boards.current(svc.sessions, slug=slug, phase=phase)
+        )
+    if format in ("markdown", "latex"):
+        paper: PaperFormat = "markdown" if format == "markdown" else "latex"
+        text = await run_in_threadpool(_paper, svc, board, paper, page, per_page)
+        disposition = f'attachment; filename="{slug}-{phase}.{SUFFIX[paper]}"'
+        return Response(
+            text, media_type=MEDIA_TYPE[paper], headers={"Content-Disposition": disposition}
         )
     if board.ready(page, per_page, format):
         body = board.body(page, per_page, format)  # every row serialized: a join, no thread
@@ -62,3 +81,12 @@ async def leaderboard(
             headers={"Content-Disposition": disposition},
         )
     return Response(body, media_type="application/json")
+
+
+def _paper(
+    svc: BoardServices, board: Snapshot, format: PaperFormat, page: int, per_page: int
+) -> str:
+    shown = board.rows[(page - 1) * per_page : page * per_page]
+    with svc.sessions() as db:
+        line = provenance(db, submission_ids=[s.submission_id for s in shown], alpha=board.alpha)
+    return paper_table(board, format=format, page=page, per_page=per_page, line=line)

@@ -97,6 +97,7 @@ def leaderboard_page(
         "sort": sort,
         "descending": descending,
         "truncated": sort != "rank" and total >= SORT_LIMIT,
+        "alpha": board.alpha,
     }
     # What the content shows, all of it: a stored row's serial always means the same row
     # (server/leaderboard/stored.py), the rest is the challenge's and the address's.
@@ -108,8 +109,8 @@ def leaderboard_page(
         shown.name,
         tuple(tasks),
         tuple(stresses),
-        tuple((board.rows[i].serial, board.ranks[i], board.tied[i]) for i in places),
-        *(context[k] for k in ("total", "page", "per_page", "sort", "descending")),
+        tuple((board.rows[i].serial, board.place(i)) for i in places),
+        *(context[k] for k in ("total", "page", "per_page", "sort", "descending", "alpha")),
     )
 
     def content() -> str:

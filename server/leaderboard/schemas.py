@@ -40,8 +40,15 @@ class LeaderboardRowOut(BaseModel):
     score_ci_high: float | None = Field(default=None, description="The interval's upper end.")
     tied: bool = Field(
         default=False,
-        description="Statistically tied with the ranked row above: the 95% intervals of their "
-        "scores overlap (docs/metrics.md, Ties).",
+        description="In the tie group of the ranked row above: McNemar's exact test on their "
+        "paired episodes does not separate them (docs/metrics.md, Paired significance).",
+    )
+    tie_group: int | None = Field(
+        default=None,
+        description="1, 2, ... down the board: consecutive ranked rows that the paired test, "
+        "Holm-corrected over the board's adjacent comparisons at the phase's "
+        "`significance_level`, does not separate share a group (docs/metrics.md, Paired "
+        "significance); null for a baseline.",
     )
 
 

@@ -123,7 +123,10 @@ class Row:
     score_ci_low: float | None = None  # the score's 95% interval (None: no results)
     score_ci_high: float | None = None
     tied: bool = False
-    """Statistically tied with the ranked row above: their score intervals overlap."""
+    """In the tie group of the ranked row above: the paired test does not separate them."""
+    tie_group: int | None = None
+    """1, 2, ... down the board: neighbours not significantly different share a group
+    (docs/metrics.md, "Paired significance"); None for baselines."""
     team: str | None = None  # the team's name for a team's row (team mode)
     team_display_name: str | None = None
     method: str | None = None
@@ -147,11 +150,6 @@ class Row:
 def _ordered(values: dict[str, V], order: Sequence[str]) -> dict[str, V]:
     known = {name: values[name] for name in order if name in values}
     return known | {name: value for name, value in values.items() if name not in known}
-
-
-def overlaps(a: tuple[float, float] | None, b: tuple[float, float] | None) -> bool:
-    """Whether two intervals share a point (False when either is unknown)."""
-    return a is not None and b is not None and a[0] <= b[1] and b[0] <= a[1]
 
 
 @dataclass(frozen=True)
@@ -191,9 +189,7 @@ def board_query(phase_id: int, *summary: Any) -> Select[*tuple[Any, ...]]:
 Interval = tuple[float, float] | None
 
 
-def board_row(
-    entry: Any, data: dict[str, Any], rank: int | None, interval: Interval, tied: bool
-) -> Row:
+def board_row(entry: Any, data: dict[str, Any], rank: int | None, interval: Interval) -> Row:
     """A row as boards show it, from its entry's columns and summary."""
     return Row(
         rank=rank,
@@ -206,7 +202,6 @@ def board_row(
         tasks=data.get("tasks", {}),
         score_ci_low=interval[0] if interval else None,
         score_ci_high=interval[1] if interval else None,
-        tied=tied,
         team=entry.team_name,
         team_display_name=entry.team_display_name,
         method=entry.method,

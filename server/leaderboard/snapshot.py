@@ -9,7 +9,9 @@ request waits for another's read (but the very first of a phase's).
 
 Bringing a snapshot up to date reads the ids of the phase's rows (an index-only scan) and only
 the rows it does not hold yet: the entries that went are dropped, those that came are put in
-their place, and ranks and ties are counted again from the first place that changed. A change
+their place, ranks are counted again from the first place that changed, and the tie groups are
+counted again whole from the paired tests kept, testing only the neighbours that are new
+(`server.leaderboard.ties`: Holm's correction depends on every comparison). A change
 costs milliseconds where reading the whole board again costs a fifth of a second, during which
 the thread holds the interpreter. A full read happens for a phase's first snapshot, when its
 columns changed, when most of the board did (a rebuild), and on SQLite (`STABLE_IDS`). What is
@@ -39,11 +41,11 @@ from server.leaderboard.service import (
     board_query,
     board_version,
     interval_of_summary,
-    overlaps,
     suite_columns,
 )
-from server.leaderboard.stored import Stored, csv_header
-from server.models import Challenge, LeaderboardEntry
+from server.leaderboard.stored import Place, Stored, csv_header
+from server.leaderboard.ties import TieGroups, count_groups, outcomes_of
+from server.models import Challenge, LeaderboardEntry, Phase
 
 INCREMENT_SHARE = 0.5
 INCREMENT_MIN = 64
@@ -68,7 +70,8 @@ class Snapshot:
     version: int
     rows: list[Stored]
     ranks: list[int | None]  # None for baselines
-    tied: list[bool]
+    ties: TieGroups
+    alpha: float  # the phase's significance level, at which the tie groups are drawn
     tasks: list[str]
     conditions: list[str]
     suite_hash: str  # names the columns (tasks and conditions)
@@ -85,6 +88,18 @@ class Snapshot:
     def total(self) -> int:
         return len(self.rows)
 
+    @property
+    def groups(self) -> list[int | None]:
+        return self.ties.groups
+
+    @property
+    def tied(self) -> list[bool]:
+        return self.ties.tied
+
+    def place(self, index: int) -> Place:
+        """The rank, tie and tie group of the row at this place."""
+        return self.ranks[index], self.ties.tied[index], self.ties.groups[index]
+
     def ready(self, page: int, per_page: int, format: str) -> bool:
         """Whether every row of the page is serialized already (a page then costs a join)."""
         shown = self.rows[(page - 1) * per_page : page * per_page]
@@ -96,13 +111,9 @@ class Snapshot:
         cols = self.tasks, self.conditions
         if format == "csv":
             lines = [csv_header(*cols)]
-            lines += [
-                self.rows[i].csv(*cols, self.ranks[i], self.tied[i]) for i in range(start, stop)
-            ]
+            lines += [self.rows[i].csv(cols, self.place(i)) for i in range(start, stop)]
             return "".join(lines).encode()
-        items = b",".join(
-            self.rows[i].json(*cols, self.ranks[i], self.tied[i]) for i in range(start, stop)
-        )
+        items = b",".join(self.rows[i].json(cols, self.place(i)) for i in range(start, stop))
         envelope = LeaderboardOut(
             challenge=self.slug,
             phase=self.phase,
@@ -120,7 +131,8 @@ class Snapshot:
     def row(self, index: int) -> Row:
         """The row at this place in rank order, as the pages show it."""
         shown = self.rows[index].row(self.tasks, self.conditions)
-        return replace(shown, rank=self.ranks[index], tied=self.tied[index])
+        rank, tied, group = self.place(index)
+        return replace(shown, rank=rank, tied=tied, tie_group=group)
 
     def order(
         self, key: Callable[[Row], Any], name: str, descending: bool, limit: int
@@ -224,12 +236,14 @@ def _exempt_from_gc() -> None:
 
 
 def _summary_columns() -> tuple[Any, ...]:
-    # The summary as text, and only its score interval as JSON: ranks and ties need every
-    # row's interval, the rest is parsed when a page shows the row.
+    # The summary as text, and only its score interval as JSON: every row's interval is shown,
+    # the rest is parsed when a page shows the row. The outcomes, which the tie groups need of
+    # every row, are parsed once per row.
     summary = LeaderboardEntry.summary
     interval_at = [summary[("score_interval", end)].as_float() for end in (0, 1)]
     text = cast(summary, Text).label("summary_text")
-    return text, interval_at[0].label("ci_low"), interval_at[1].label("ci_high")
+    ends = interval_at[0].label("ci_low"), interval_at[1].label("ci_high")
+    return text, *ends, LeaderboardEntry.outcomes
 
 
 def _interval(db: DB, entry: Any) -> Interval:
@@ -248,17 +262,29 @@ def read_whole(
     keep: dict[int, Stored] = {}
     if held is not None and (held.tasks, held.conditions) == (tasks, conditions):
         keep = held.by_id if db.get_bind().dialect.name in STABLE_IDS else {}
-    intervals = [_interval(db, entry) for entry in entries]
-    rows = [
-        keep.get(entry.id) or Stored(entry, entry.summary_text, interval)
-        for entry, interval in zip(entries, intervals, strict=True)
-    ]
+    rows = [keep.get(entry.id) or _stored(db, entry) for entry in entries]
     ranks: list[int | None] = []
-    tied: list[bool] = []
-    _rank(zip([e.baseline for e in entries], intervals, strict=True), ranks, tied)
+    _rank((s.baseline for s in rows), ranks)
+    alpha = next(p.significance_level for p in challenge.phases if p.id == phase_id)
+    known = held.ties.p_values if held is not None else {}
+    ties = count_groups(db, rows, ranks, alpha=alpha, known=known)
     return Snapshot(
-        slug, phase, phase_id, version, rows, ranks, tied, tasks, conditions, challenge.suite_hash
+        slug,
+        phase,
+        phase_id,
+        version,
+        rows,
+        ranks,
+        ties,
+        alpha,
+        tasks,
+        conditions,
+        challenge.suite_hash,
     )
+
+
+def _stored(db: DB, entry: Any) -> Stored:
+    return Stored(entry, entry.summary_text, _interval(db, entry), outcomes_of(db, entry))
 
 
 def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
@@ -267,8 +293,12 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
     present went before it could be read), and always on a database that reuses ids."""
     if db.get_bind().dialect.name not in STABLE_IDS:
         return None
-    suite = db.scalar(select(Challenge.suite_hash).where(Challenge.slug == held.slug))
-    if suite != held.suite_hash:
+    found = db.execute(
+        select(Challenge.suite_hash, Phase.significance_level)
+        .join(Phase, Phase.challenge_id == Challenge.id)
+        .where(Phase.id == held.phase_id)
+    ).first()
+    if found is None or found[0] != held.suite_hash:
         return None  # its columns may have changed
     e = LeaderboardEntry
     ids = select(func.array_agg(e.id)).where(e.phase_id == held.phase_id)
@@ -280,7 +310,7 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
     new: list[Stored] = []
     if came:
         query = board_query(held.phase_id, *_summary_columns()).where(e.id.in_(came))
-        new = [Stored(r, r.summary_text, _interval(db, r)) for r in db.execute(query)]
+        new = [_stored(db, r) for r in db.execute(query)]
         if len(new) != len(came):
             return None  # refreshed between the two reads: the ids are not one state
     rows = [s for s in held.rows if s.id not in gone] if gone else list(held.rows)
@@ -290,8 +320,9 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
         (i for i, (a, b) in enumerate(zip(rows, held.rows, strict=False)) if a is not b),
         min(len(rows), len(held.rows)),
     )
-    ranks, tied = held.ranks[:first], held.tied[:first]
-    _rank_from(rows, first, ranks, tied)
+    ranks = held.ranks[:first]
+    _rank_from(rows, first, ranks)
+    alpha = found[1]
     return Snapshot(
         held.slug,
         held.phase,
@@ -299,7 +330,8 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
         version,
         rows,
         ranks,
-        tied,
+        count_groups(db, rows, ranks, alpha=alpha, known=held.ties.p_values),
+        alpha,
         held.tasks,
         held.conditions,
         held.suite_hash,
@@ -307,33 +339,18 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
     )
 
 
-def _rank_from(rows: list[Stored], first: int, ranks: list[int | None], tied: list[bool]) -> None:
-    """Extend `ranks` and `tied`, right up to `first`, to every row."""
-    rank, above = 0, None
-    for i in range(first - 1, -1, -1):
-        if (found := ranks[i]) is not None:
-            rank, above = found, rows[i].interval
-            break
-    _rank(((s.baseline, s.interval) for s in rows[first:]), ranks, tied, rank=rank, above=above)
+def _rank_from(rows: list[Stored], first: int, ranks: list[int | None]) -> None:
+    """Extend `ranks`, right up to `first`, to every row."""
+    rank = next((found for found in reversed(ranks[:first]) if found is not None), 0)
+    _rank((s.baseline for s in rows[first:]), ranks, rank=rank)
 
 
-def _rank(
-    rows: Iterable[tuple[bool, Interval]],
-    ranks: list[int | None],
-    tied: list[bool],
-    *,
-    rank: int = 0,
-    above: Interval = None,
-) -> None:
-    """Append the rank and tie of each (baseline, score interval) in rank order, after a ranked
-    row of `rank` and interval `above`: baselines are not ranked, and a row is tied when its
-    interval overlaps the one of the ranked row above it."""
-    for baseline, interval in rows:
+def _rank(baselines: Iterable[bool], ranks: list[int | None], *, rank: int = 0) -> None:
+    """Append the rank of each row in rank order (given whether it is a baseline), after a
+    ranked row of `rank`: baselines are not ranked."""
+    for baseline in baselines:
         if baseline:
             ranks.append(None)
-            tied.append(False)
             continue
         rank += 1
         ranks.append(rank)
-        tied.append(overlaps(interval, above))
-        above = interval

@@ -1,6 +1,6 @@
 """One stored leaderboard row and what is derived from it alone, made once and kept across a
 phase's snapshots: its row as the pages show it, its JSON and its CSV line, less its rank and
-tie, which are the snapshot's.
+tie group, which are the snapshot's.
 
 An entry's id always means the same content: `server.standings.entries` never updates a row
 in place (a refresh deletes the rows it recomputes and inserts new ones), so what is derived
@@ -16,15 +16,24 @@ import json
 from collections.abc import Callable, Hashable, Sequence
 from typing import Any
 
+from evaluator.paired import PackedOutcomes
 from server.leaderboard.schemas import LeaderboardRowOut
 from server.leaderboard.service import Interval, Row, board_row
 
 CSV_HEADER = ["rank", "username", "baseline", "score", "score_ci_low", "score_ci_high", "tied"]
-CSV_HEADER += ["submitted_at", "submission_id", "team", "team_display_name", "method"]
+CSV_HEADER += ["tie_group", "submitted_at", "submission_id", "team", "team_display_name", "method"]
 CSV_HEADER += ["paper_url", "code_url"]
 
 
 _SERIALS = itertools.count(1)
+
+Place = tuple[int | None, bool, int | None]
+"""Where a snapshot puts a row: its rank, whether it is tied with the ranked row above (in its
+tie group), and its tie group (None, None for a baseline)."""
+
+
+def _json_int(n: int | None) -> bytes:
+    return b"null" if n is None else str(n).encode()
 
 
 def csv_safe(text: str) -> str:
@@ -80,6 +89,7 @@ class Stored:
         "_sorts",
         "interval",
         "key",
+        "outcomes",
         "serial",
         "summary",
     )
@@ -96,7 +106,13 @@ class Stored:
     paper_url: str | None
     code_url: str | None
 
-    def __init__(self, entry: Any, summary_text: str, interval: Interval) -> None:
+    def __init__(
+        self,
+        entry: Any,
+        summary_text: str,
+        interval: Interval,
+        outcomes: PackedOutcomes | None = None,
+    ) -> None:
         for name in ENTRY_FIELDS:
             setattr(self, name, getattr(entry, name))
         self.serial = next(_SERIALS)
@@ -104,6 +120,8 @@ class Stored:
         be given to another row on SQLite)."""
         self.summary = summary_text
         self.interval = interval
+        self.outcomes = outcomes
+        """The ranked condition's episodes, packed: what the tie groups pair."""
         self.key: tuple[float, Any, int] = (-entry.score, entry.submitted_at, entry.id)
         """The rank order: higher score, then earlier, then lower id (the database's order)."""
         self._json: bytes | None = None
@@ -112,8 +130,8 @@ class Stored:
         self._sorts: dict[str, Any] | None = None
 
     def row(self, tasks: Sequence[str], conditions: Sequence[str]) -> Row:
-        """The row as pages show it, unranked and untied."""
-        done = board_row(self, json.loads(self.summary), None, self.interval, False)
+        """The row as pages show it, unranked and in no tie group."""
+        done = board_row(self, json.loads(self.summary), None, self.interval)
         return done.in_order(tasks=tasks, conditions=conditions)
 
     def sort_value(
@@ -137,29 +155,30 @@ class Stored:
         """Whether the row's JSON (or CSV line) is made already."""
         return (self._csv if format == "csv" else self._json) is not None
 
-    def json(
-        self, tasks: Sequence[str], conditions: Sequence[str], rank: int | None, tied: bool
-    ) -> bytes:
-        """The row as the API's JSON shows it, rank and tie included."""
+    def json(self, cols: tuple[Sequence[str], Sequence[str]], place: Place) -> bytes:
+        """The row as the API's JSON shows it, rank and tie group included."""
         if (inner := self._json) is None:
-            out = LeaderboardRowOut(**self.row(tasks, conditions).__dict__)
-            # Every field but the first (rank) and the last (tied), without the braces.
-            inner = self._json = out.model_dump_json(exclude={"rank", "tied"}).encode()[1:-1]
-        head = b'{"rank":' + (b"null" if rank is None else str(rank).encode()) + b","
-        return head + inner + (b',"tied":true}' if tied else b',"tied":false}')
+            out = LeaderboardRowOut(**self.row(*cols).__dict__)
+            # Every field but the first (rank) and the last two (tied, tie_group), no braces.
+            skip = {"rank", "tied", "tie_group"}
+            inner = self._json = out.model_dump_json(exclude=skip).encode()[1:-1]
+        rank, tied, group = place
+        head = b'{"rank":' + _json_int(rank) + b","
+        tail = b',"tied":' + (b"true" if tied else b"false") + b',"tie_group":' + _json_int(group)
+        return head + inner + tail + b"}"
 
-    def csv(
-        self, tasks: Sequence[str], conditions: Sequence[str], rank: int | None, tied: bool
-    ) -> str:
-        """The row as a CSV line, rank and tie included."""
+    def csv(self, cols: tuple[Sequence[str], Sequence[str]], place: Place) -> str:
+        """The row as a CSV line, rank and tie group included."""
         if (parts := self._csv) is None:
-            parts = self._csv = self._csv_parts(self.row(tasks, conditions), tasks, conditions)
+            parts = self._csv = self._csv_parts(self.row(*cols), *cols)
         before, after = parts
-        return ("" if rank is None else str(rank)) + "," + before + f",{tied}," + after
+        rank, tied, group = place
+        shown = ["" if n is None else str(n) for n in (rank, group)]
+        return shown[0] + "," + before + f",{tied},{shown[1]}," + after
 
     @staticmethod
     def _csv_parts(row: Row, tasks: Sequence[str], conditions: Sequence[str]) -> tuple[str, str]:
-        # The cells between rank and tied, and those after tied, each as the writer would put
+        # The cells between rank and tied, and those after the tie group, as the writer would put
         # them in the whole line (several cells: none is quoted for being alone).
         between: list[object] = [
             csv_safe(row.username),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import Boolean, ForeignKey, Integer, String, Text, UniqueConstraint
+from sqlalchemy import Boolean, Float, ForeignKey, Integer, String, Text, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from server.models.base import Base, utcnow
@@ -47,6 +47,8 @@ class Phase(Base):
     closes_at: Mapped[datetime | None]
     leaderboard_version: Mapped[int] = mapped_column(Integer, default=0)
     """Bumped whenever the phase's leaderboard changes: the key of the API's cache."""
+    significance_level: Mapped[float] = mapped_column(Float, default=0.05)
+    """The board's tie groups' family-wise level: the suite's phase's `significance_level`."""
 
     challenge: Mapped[Challenge] = relationship(back_populates="phases", lazy="raise")
 

@@ -55,6 +55,10 @@ class LeaderboardEntry(Base):
     code_url: Mapped[str | None] = mapped_column(String(500))
     summary: Mapped[dict[str, Any]]
     """Per-condition scores and per-task success with intervals, as the leaderboard shows."""
+    outcomes: Mapped[dict[str, Any] | None]
+    """The first condition's episode outcomes, packed (`evaluator.paired.PackedOutcomes`):
+    what the board's tie groups pair. None in rows stored before it was, and for a submission
+    with no episodes."""
 
 
 Index(

@@ -23,10 +23,12 @@ from typing import Any
 from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session as DB
 
+from evaluator.paired import Outcome, PackedOutcomes
 from evaluator.results import condition_means
 from evaluator.stats import wilson_interval
 from server.models import (
     Challenge,
+    EpisodeResultRow,
     LeaderboardEntry,
     Phase,
     State,
@@ -169,6 +171,7 @@ def _entry(
         paper_url=submission.paper_url,
         code_url=submission.code_url,
         summary=summary(db, submission=submission),
+        outcomes=packed_outcomes(db, submission=submission),
     )
 
 
@@ -239,6 +242,39 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
         # The score's 95% interval: Wilson over the first condition's episodes pooled.
         "score_interval": list(wilson_interval(successes, episodes)) if rows else None,
     }
+
+
+def ranked_outcomes(db: DB, *, submission: Submission) -> tuple[str, list[Outcome]] | None:
+    """The ranked (first) condition's name and its episodes' outcomes, from the current
+    attempt's episode rows; None when it has none."""
+    rows = db.execute(
+        select(
+            TaskResultRow.condition,
+            TaskResultRow.env_id,
+            EpisodeResultRow.index,
+            EpisodeResultRow.seed,
+            EpisodeResultRow.success_once,
+        )
+        .join(TaskResultRow, EpisodeResultRow.task_result_id == TaskResultRow.id)
+        .where(
+            TaskResultRow.submission_id == submission.id,
+            TaskResultRow.attempt == submission.attempt,
+        )
+        .order_by(TaskResultRow.id, EpisodeResultRow.index)
+    ).all()
+    if not rows:
+        return None
+    first = rows[0].condition  # the first task row's, as in `summary`
+    return first, [Outcome(*row) for row in rows if row.condition == first]
+
+
+def packed_outcomes(db: DB, *, submission: Submission) -> dict[str, Any] | None:
+    """What a board row keeps of its episodes for the tie groups (`LeaderboardEntry.outcomes`)."""
+    found = ranked_outcomes(db, submission=submission)
+    if found is None:
+        return None
+    condition, outcomes = found
+    return PackedOutcomes.of(outcomes, condition=condition).as_json()
 
 
 def _moved(db: DB, phase_id: int) -> None:

@@ -11,11 +11,12 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
 
 from manieval.errors import ExitCode
+from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory
 from server.kit.settings import Settings
 from server.models import Challenge, State, User
 from server.submissions.reports import report_final, report_state
-from testkit.factories import queue_submission, result_doc
+from testkit.factories import SUITE, queue_submission, result_doc
 from tests.cli.conftest import LiveServer, participant
 from tests.web.helpers import WEB_CONDITIONS
 
@@ -37,14 +38,13 @@ def submitted(
     *,
     phase: str = "dev",
     state: State = State.SUCCEEDED,
+    slug: str = "server-tiny",
 ) -> int:
-    """A submission of `username` to server-tiny that ended in `state` with these episode
+    """A submission of `username` to `slug` that ended in `state` with these episode
     outcomes, through the worker's reporting path."""
     user = db.scalars(select(User).where(User.username == username)).one()
     challenge = db.scalars(
-        select(Challenge)
-        .where(Challenge.slug == "server-tiny")
-        .options(selectinload(Challenge.phases))
+        select(Challenge).where(Challenge.slug == slug).options(selectinload(Challenge.phases))
     ).one()
     s = queue_submission(db, user, challenge, phase)
     assert report_state(db, s.id, 1, State.LAUNCHING, "starting")
@@ -144,3 +144,42 @@ def test_compare_refuses_what_it_cannot_pair_or_read(
     assert "ran server-tiny/test" in r.stderr
     r = dave.run("compare", str(mine), str(mine), "--alpha", "1")
     assert r.exit_code == ExitCode.USAGE, r.output
+
+
+def test_the_board_groups_neighbours_as_compare_explains(
+    live: LiveServer, db: Session, tmp_path: Path
+) -> None:
+    ada = participant(live, tmp_path / "ada", "ada")
+    participant(live, tmp_path / "bea", "bea")
+    # A board of their own: the module's other tests submit to server-tiny.
+    suite = tmp_path / "paired.yaml"
+    suite.write_text(SUITE.read_text().replace("name: server-tiny", "name: paired-tiny"))
+    load_challenge(db, suite, ChallengeOptions(), seed_secret="s" * 32)
+    db.commit()
+    # Overlapping intervals (65 and 50 of 100) that the paired test separates: two groups.
+    better, worse = paired(both=50, only_a=15, only_b=0, neither=35)
+    a = submitted(db, "ada", better, slug="paired-tiny")
+    b = submitted(db, "bea", worse, slug="paired-tiny")
+    r = ada.run("leaderboard", "paired-tiny")
+    assert r.exit_code == 0, r.output
+    assert [cells[:3] for cells in table_rows(r.stdout)] == [["1", "G1", "ada"], ["2", "G2", "bea"]]
+    r = ada.run("leaderboard", "paired-tiny", "--format", "markdown")
+    assert r.exit_code == 0, r.output
+    assert "| 1 | 1 | ada | 0.650 [0.553, 0.736] |" in r.stdout
+    assert "tie groups: McNemar's exact test, Holm\\-corrected, at 0\\.05" in r.stdout
+    r = ada.run("leaderboard", "paired-tiny", "--format", "latex")
+    assert r.exit_code == 0, r.output
+    assert r"2 & 2 & bea & 0.500 [0.404, 0.596] & 0.500 [0.404, 0.596] \\" in r.stdout
+    assert ada.run("leaderboard", "paired-tiny", "--csv", "--format", "latex").exit_code == (
+        ExitCode.USAGE
+    )
+
+    # An admin may read both submissions' episodes: compare prints the table behind the groups.
+    user = db.scalars(select(User).where(User.username == "ada")).one()
+    user.is_admin = True
+    db.commit()
+    r = ada.run("compare", str(a), str(b))
+    assert r.exit_code == 0, r.output
+    rows = {cells[0]: cells[1:] for cells in table_rows(r.stdout)}
+    assert rows["pooled"] == ["50", "15", "0", "35", "65/100", "50/100", "6.1e-05"]
+    assert f"{a} is better than {b} at 0.05" in r.stdout

@@ -101,16 +101,22 @@ def test_a_queued_submission_shows_its_place_in_status_and_while_waiting() -> No
     assert render.queue_text(None) == ""
 
 
-def test_the_terminal_board_keeps_the_suites_order_and_marks_ties() -> None:
+NAMES = ("alice", "bob", "carol", "random")
+
+
+def test_the_terminal_board_keeps_the_suites_order_and_marks_tie_groups() -> None:
     from rich.console import Console
 
-    def row(rank: int | None, user: str, tied: bool = False) -> dict[str, object]:
+    def row(
+        rank: int | None, user: str, group: int | None, tied: bool = False
+    ) -> dict[str, object]:
         return {
             "rank": rank,
             "username": user,
             "submission_id": 1,
             "score": 0.5,
             "tied": tied,
+            "tie_group": group,
             "tasks": {t: {"success_rate": 0.5} for t in ("StackCube-v1", "PickCube-v1")},
             "conditions": {"obs_noise": 0.4, "nominal": 0.5},
         }
@@ -120,10 +126,15 @@ def test_the_terminal_board_keeps_the_suites_order_and_marks_ties() -> None:
         "phase": "dev",
         "page": 1,
         "per_page": 50,
-        "total": 3,
+        "total": 4,
         "tasks": ["StackCube-v1", "PickCube-v1"],  # the suite's order, not the alphabet's
         "conditions": ["nominal", "obs_noise"],
-        "items": [row(1, "alice"), row(2, "bob", tied=True), row(None, "random")],
+        "items": [
+            row(1, "alice", 1),
+            row(2, "bob", 1, tied=True),
+            row(3, "carol", 2),
+            row(None, "random", None),
+        ],
     }
     console = Console(width=200, record=True)
     console.print(render.leaderboard_table(board))
@@ -133,6 +144,13 @@ def test_the_terminal_board_keeps_the_suites_order_and_marks_ties() -> None:
     assert header.index("nominal") < header.index("obs_noise")
     assert "=2" in text
     assert "baseline" in text
+    line = {u: next(x for x in text.splitlines() if f" {u} " in x) for u in NAMES}
+    assert [[c.strip() for c in line[u].split("│")][1:3] for u in NAMES] == [
+        ["1", "G1"],
+        ["=2", "G1"],
+        ["3", "G2"],
+        ["baseline", ""],
+    ]
 
 
 def test_a_team_row_names_the_team_beside_its_display_name_and_who_submitted() -> None:

@@ -142,6 +142,7 @@ def needed_in_images() -> list[str]:
         include = tomllib.load(f)["tool"]["setuptools"]["packages"]["find"]["include"]
     packages = [pattern.rstrip("*") for pattern in include]
     extra = ["alembic", "alembic.ini", "suites", "evaluator/sdk/manieval_sdk", "web"]
+    extra += ["docs/metrics.md"]  # served as /help/metrics
     paths = [*packages, *extra]
     return [
         str(f.relative_to(REPO))

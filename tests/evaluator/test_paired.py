@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import binomtest
 
-from evaluator.paired import Outcome, PairedTable, compare, holm_rejections, tie_groups
+from evaluator.paired import (
+    Outcome,
+    PackedOutcomes,
+    PairedTable,
+    compare,
+    compare_packed,
+    holm_rejections,
+    tie_groups,
+)
 from evaluator.stats import mcnemar_exact_p, wilson_interval
 
 # Below about 1e-300 scipy's own float arithmetic underflows before ours does (ours is exact,
@@ -94,6 +104,50 @@ def test_compare_pairs_secret_seed_episodes_by_index() -> None:
 def test_compare_refuses_an_episode_listed_twice() -> None:
     with pytest.raises(ValueError, match="twice"):
         compare(outcomes([True]) * 2, outcomes([True]), condition="nominal")
+
+
+# Packed outcomes: what a board compares ------------------------------------------------------
+
+TASK_NAMES = ("PickCube-v1", "StackCube-v1", "PushCube-v1")
+
+
+@st.composite
+def runs(draw: st.DrawFn, *, seeds: dict[str, list[int]]) -> list[Outcome]:
+    """A run of some of the tasks, over these seeds, under two conditions, in any order."""
+    found = [
+        Outcome(condition, env_id, i, seed, draw(st.booleans()))
+        for env_id in draw(st.lists(st.sampled_from(TASK_NAMES), unique=True))
+        for condition in ("nominal", "obs_noise")
+        for i, seed in enumerate(seeds[env_id])
+    ]
+    return draw(st.permutations(found))
+
+
+SEEDS = {name: [7 * n + i for i in range(70)] for n, name in enumerate(TASK_NAMES)}
+
+
+@settings(max_examples=200, deadline=None)
+@given(runs(seeds=SEEDS), runs(seeds=SEEDS))
+def test_packed_outcomes_compare_as_the_outcomes_do(a: list[Outcome], b: list[Outcome]) -> None:
+    packed = [PackedOutcomes.of(run, condition="nominal") for run in (a, b)]
+    found = compare_packed(*packed)
+    assert found == compare(a, b, condition="nominal")
+    again = [PackedOutcomes.from_json(json.loads(json.dumps(p.as_json()))) for p in packed]
+    assert again == packed
+
+
+def test_packed_outcomes_with_other_seeds_are_compared_as_outcomes() -> None:
+    a = PackedOutcomes.of(outcomes([True, False]), condition="nominal")
+    moved = [Outcome("nominal", "PickCube-v1", i, 2000 + i, True) for i in range(2)]
+    assert compare_packed(a, PackedOutcomes.of(moved, condition="nominal")) is None
+    fewer = PackedOutcomes.of(outcomes([True]), condition="nominal")
+    assert compare_packed(a, fewer) is None  # compare pairs the first one: so must the board
+
+
+def test_packing_refuses_an_index_run_with_two_seeds() -> None:
+    twice = [*outcomes([True]), Outcome("nominal", "PickCube-v1", 0, 5, False)]
+    with pytest.raises(ValueError, match="twice"):
+        PackedOutcomes.of(twice, condition="nominal")
 
 
 def overlap(a: list[bool], b: list[bool]) -> bool:

@@ -284,3 +284,21 @@ def test_observation_settings_that_cannot_work_are_refused(
     )
     with pytest.raises(SuiteError, match=message):
         load_suite(write_suite(tmp_path, body))
+
+
+def test_a_phases_significance_level_is_checked_and_stays_out_of_the_hash(tmp_path: Path):
+    core = load_suite("maniskill-core")
+    assert {p.significance_level for p in core.phases.values()} == {0.05}
+    text = (Path(__file__).parents[2] / "suites" / "maniskill-core.yaml").read_text()
+    stricter = text.replace(
+        "seeds: {kind: secret}", "seeds: {kind: secret}\n    significance_level: 0.01"
+    )
+    suite = load_suite(write_suite(tmp_path, stricter))
+    assert suite.phase("test").significance_level == 0.01
+    assert suite.sha256() == CORE_SUITE_SHA256  # how results are read, not what ran
+    for bad in ("0", "0.6", "-0.1"):
+        wrong = text.replace(
+            "seeds: {kind: secret}", f"seeds: {{kind: secret}}\n    significance_level: {bad}"
+        )
+        with pytest.raises(SuiteError, match="significance_level"):
+            load_suite(write_suite(tmp_path, wrong))

@@ -8,11 +8,13 @@ from __future__ import annotations
 import csv
 import io
 import random
+from typing import Any
 
 import pytest
 from sqlalchemy.orm import Session
 
 from server.accounts.service import team_of
+from server.leaderboard import ties
 from server.leaderboard.pages import sort_value
 from server.leaderboard.schemas import LeaderboardRowOut
 from server.leaderboard.service import board_version
@@ -94,7 +96,7 @@ def assert_same(got: Snapshot, whole: Snapshot) -> None:
     view (a sorted view of the first rows may be the last snapshot's)."""
     assert _sorted(got) == _sorted(whole)
     assert [s.id for s in got.rows] == [s.id for s in whole.rows]
-    assert (got.ranks, got.tied) == (whole.ranks, whole.tied)
+    assert (got.ranks, got.groups, got.tied) == (whole.ranks, whole.groups, whole.tied)
     assert [got.row(i) for i in range(got.total)] == [whole.row(i) for i in range(whole.total)]
     for per_page in (1, 3, 50):
         for page in range(1, got.total // per_page + 2):
@@ -166,6 +168,48 @@ def test_a_rows_json_and_csv_line_are_the_whole_rows(db: Session) -> None:
         cells = lines[i + 1]
         assert len(cells) == len(lines[0])
         assert cells[:2] == ["" if row.rank is None else str(row.rank), csv_safe(row.username)]
-        assert cells[6] == str(row.tied)
-        assert cells[8] == str(row.submission_id)
-        assert cells[11] == csv_safe(row.method or "")
+        assert cells[6:8] == [str(row.tied), "" if row.tie_group is None else str(row.tie_group)]
+        assert cells[9] == str(row.submission_id)
+        assert cells[12] == csv_safe(row.method or "")
+
+
+def _finished(db: Session, user: User, challenge: Challenge, successes: list[bool]) -> None:
+    s = queue_submission(db, user, challenge)
+    assert report_state(db, s.id, 1, State.LAUNCHING, "starting")
+    assert report_state(db, s.id, 1, State.RUNNING, "evaluating")
+    assert report_final(db, s.id, 1, State.SUCCEEDED, "done", result=result_doc(successes))
+    db.commit()
+
+
+def test_a_row_added_below_regroups_the_rows_above_and_tests_only_the_new_pair(
+    db: Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    challenge = make_challenge(db, quota_per_day=50, quota_concurrent=50)
+    # alice 16 and bob 10 of 20, bob's within alice's: p = 2/64 = 0.031, two groups at 0.05.
+    _finished(db, make_user(db, "alice"), challenge, [i < 16 for i in range(20)])
+    _finished(db, make_user(db, "bob"), challenge, [i < 10 for i in range(20)])
+    phase_id, version = board_version(db, slug=SLUG, phase=PHASE)
+    held = read_whole(db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version)
+    assert held.groups == [1, 2]
+
+    tested: list[tuple[str, str]] = []
+    real = ties.paired_p_value
+
+    def counted(db: Session, above: Any, below: Any) -> float:
+        tested.append((above.username, below.username))
+        return real(db, above, below)
+
+    monkeypatch.setattr(ties, "paired_p_value", counted)
+    # carol below bob (bob alone 8, carol alone 1: p = 0.039): the last row is the only one
+    # that changed, yet Holm's thresholds over two comparisons leave no boundary above it.
+    _finished(db, make_user(db, "carol"), challenge, [i in (0, 1, 16) for i in range(20)])
+    phase_id, version = board_version(db, slug=SLUG, phase=PHASE)
+    moved = advance(db, held, version=version)
+    tested_by_advance = list(tested)
+    whole = read_whole(db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version)
+    if db.get_bind().dialect.name == "postgresql":
+        assert moved is not None
+        assert tested_by_advance == [("bob", "carol")]  # alice against bob was kept
+        assert_same(moved, whole)
+    assert whole.groups == [1, 1, 1]
+    assert whole.tied == [False, True, True]

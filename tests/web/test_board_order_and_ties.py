@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
+from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
@@ -90,45 +91,124 @@ def test_json_csv_and_web_boards_list_tasks_and_conditions_in_the_suites_order(
     assert head.index("obs_<wbr>noise") < head.index("action_<wbr>delay")
 
 
-def test_rows_whose_score_intervals_overlap_the_row_above_are_tied(
+def paired(both: int, only_a: int, only_b: int, neither: int) -> tuple[list[bool], list[bool]]:
+    """Two runs over the same episodes (seeds) with this 2x2 table of outcomes."""
+    a = [True] * (both + only_a) + [False] * (only_b + neither)
+    b = [True] * both + [False] * only_a + [True] * only_b + [False] * neither
+    return a, b
+
+
+def _board(client: TestClient) -> tuple[list[dict[str, Any]], list[list[str]], str]:
+    """The board as the API's JSON, the CSV's rows (header first) and the web page."""
+    items = client.get(BOARD.format(slug="server-tiny")).json()["items"]
+    text = client.get(BOARD.format(slug="server-tiny") + "&format=csv").text
+    html = client.get("/challenges/server-tiny/leaderboard?phase=dev").text
+    return items, list(csv.reader(io.StringIO(text))), html
+
+
+def _overlap(upper: dict[str, Any], lower: dict[str, Any]) -> bool:
+    return lower["score_ci_high"] >= upper["score_ci_low"]
+
+
+def test_overlapping_intervals_that_the_paired_test_separates_are_two_groups(
     client: TestClient, db: Session, tiny: Challenge
 ) -> None:
-    finished(db, make_user(db, "alice"), tiny, [True] * 10)  # 10/10: [0.72, 1]
-    finished(db, make_user(db, "bob"), tiny, [True] * 9 + [False])  # 9/10: [0.60, 0.98]
-    finished(db, make_user(db, "carol"), tiny, [False] * 10)  # 0/10: [0, 0.28]
-    items = client.get(BOARD.format(slug="server-tiny")).json()["items"]
-    assert [(r["username"], r["rank"], r["tied"]) for r in items] == [
-        ("alice", 1, False),
-        ("bob", 2, True),
-        ("carol", 3, False),
+    # B solves every episode A solves and 15 more of the 100: 65 against 50.
+    worse, better = paired(both=50, only_a=0, only_b=15, neither=35)
+    finished(db, make_user(db, "alice"), tiny, better)
+    finished(db, make_user(db, "bob"), tiny, worse)
+    items, rows, html = _board(client)
+    assert _overlap(*items)  # the old rule called them tied
+    assert [(r["username"], r["rank"], r["tied"], r["tie_group"]) for r in items] == [
+        ("alice", 1, False, 1),
+        ("bob", 2, False, 2),
     ]
-    assert items[0]["score_ci_low"] == pytest.approx(0.7225, abs=1e-4)
-    assert items[0]["score_ci_high"] == pytest.approx(1.0)
+    assert rows[0][6:8] == ["tied", "tie_group"]
+    assert [(r[1], r[6], r[7]) for r in rows[1:]] == [
+        ("alice", "False", "1"),
+        ("bob", "False", "2"),
+    ]
+    assert '<span aria-hidden="true">G2</span><span class="visually-hidden">tie group 2:' in html
+    assert 'title="Tie group 1: the first group"' in html
+    assert "the paired test on their shared episodes separates it from rank 1" in html
+    assert 'href="/help/metrics#paired-significance"' in html
+
+
+def test_separate_intervals_that_the_paired_test_does_not_separate_share_a_group(
+    client: TestClient, db: Session, tiny: Challenge
+) -> None:
+    # 58 against 38 of 100, on 96 discordant episodes of which B wins 38: p = 0.052.
+    better, worse = paired(both=0, only_a=58, only_b=38, neither=4)
+    finished(db, make_user(db, "alice"), tiny, better)
+    finished(db, make_user(db, "bob"), tiny, worse)
+    items, rows, html = _board(client)
+    assert not _overlap(*items)  # the old rule set them apart
+    assert [(r["username"], r["tied"], r["tie_group"]) for r in items] == [
+        ("alice", False, 1),
+        ("bob", True, 1),
+    ]
+    assert [(r[1], r[6], r[7]) for r in rows[1:]] == [("alice", "False", "1"), ("bob", "True", "1")]
+    assert html.count('<span aria-hidden="true">G1</span>') == 2
+    assert "tie group 1, not significantly different from rank 1" in html
+    assert (
+        'title="Tie group 1: the paired test on their shared episodes does not separate it' in html
+    )
     # A page boundary does not hide the row above.
     second = client.get(BOARD.format(slug="server-tiny") + "&per_page=1&page=2").json()
-    assert [(r["username"], r["tied"]) for r in second["items"]] == [("bob", True)]
-    header, *rows = csv.reader(
-        io.StringIO(client.get(BOARD.format(slug="server-tiny") + "&format=csv").text)
-    )
-    assert header[:7] == [
-        "rank",
-        "username",
-        "baseline",
-        "score",
-        "score_ci_low",
-        "score_ci_high",
-        "tied",
-    ]
-    assert [(r[0], r[1], r[6]) for r in rows] == [
-        ("1", "alice", "False"),
-        ("2", "bob", "True"),
-        ("3", "carol", "False"),
+    assert [(r["username"], r["tied"], r["tie_group"]) for r in second["items"]] == [
+        ("bob", True, 1)
     ]
 
+
+def test_holm_corrects_over_the_boards_comparisons_at_the_phases_level(
+    client: TestClient, db: Session, tiny: Challenge, tmp_path: Path
+) -> None:
+    # Alone, 16 against 10 of 20 (6 discordant, all A's) is p = 0.031: two groups at 0.05.
+    finished(db, make_user(db, "alice"), tiny, [i < 16 for i in range(20)])
+    finished(db, make_user(db, "bob"), tiny, [i < 10 for i in range(20)])
+    items = client.get(BOARD.format(slug="server-tiny")).json()["items"]
+    assert [r["tie_group"] for r in items] == [1, 2]
+    # A third below bob (bob alone 8, carol alone 1: p = 0.039) makes two comparisons, and
+    # Holm asks the smaller p-value to pass 0.025: no boundary is left.
+    finished(db, make_user(db, "carol"), tiny, [i in (0, 1, 16) for i in range(20)])
+    items = client.get(BOARD.format(slug="server-tiny")).json()["items"]
+    assert [(r["username"], r["tie_group"]) for r in items] == [
+        ("alice", 1),
+        ("bob", 1),
+        ("carol", 1),
+    ]
+    # The organizer's level, from the suite: at 0.1, both boundaries stand.
+    looser = tmp_path / "server-tiny.yaml"
+    looser.write_text(
+        SUITE.read_text().replace(
+            "seeds: {kind: public, start: 0}}",
+            "seeds: {kind: public, start: 0}, significance_level: 0.1}",
+        )
+    )
+    load_challenge(db, looser, ChallengeOptions(), seed_secret="s" * 32)
+    db.commit()
+    items = client.get(BOARD.format(slug="server-tiny")).json()["items"]
+    assert [r["tie_group"] for r in items] == [1, 2, 3]
     html = client.get("/challenges/server-tiny/leaderboard?phase=dev").text
-    assert html.count('class="badge badge-tie"') == 1 + 1  # bob's, and the legend's
-    assert 'title="Statistically tied with rank 1' in html
-    assert "72\u2013100%" in html  # alice's score interval (an en dash) under her score
+    assert "(Holm, at 0.1)" in html
+
+
+def test_a_challenge_page_shows_the_tie_groups_of_its_top_rows(
+    client: TestClient, db: Session, tiny: Challenge
+) -> None:
+    worse, better = paired(both=50, only_a=0, only_b=15, neither=35)
+    finished(db, make_user(db, "alice"), tiny, better)
+    finished(db, make_user(db, "bob"), tiny, worse)
+    html = client.get("/challenges/server-tiny").text
+    assert '<span aria-hidden="true">G1</span>' in html
+    assert '<span aria-hidden="true">G2</span>' in html
+
+
+def test_the_help_page_serves_the_metrics_doc_with_its_anchors(client: TestClient) -> None:
+    html = client.get("/help/metrics").text
+    assert '<h2 id="paired-significance">Paired significance</h2>' in html
+    assert '<h3 id="tie-groups-and-the-correction">' in html
+    assert "<table>" in html
 
 
 def test_a_baseline_between_two_rows_does_not_break_their_tie(
@@ -193,3 +273,21 @@ def test_rows_stored_before_score_intervals_are_measured_again(
     items = client.get(BOARD.format(slug="server-tiny")).json()["items"]
     assert [(r["username"], r["tied"]) for r in items] == [("alice", False), ("bob", True)]
     assert items[1]["score_ci_low"] == pytest.approx(0.5958, abs=1e-4)
+
+
+def test_rows_stored_before_their_outcomes_are_paired_from_their_episodes(
+    client: TestClient, db: Session, tiny: Challenge
+) -> None:
+    from sqlalchemy import select
+
+    from server.models import LeaderboardEntry
+
+    worse, better = paired(both=50, only_a=0, only_b=15, neither=35)
+    finished(db, make_user(db, "alice"), tiny, better)
+    finished(db, make_user(db, "bob"), tiny, worse)
+    for entry in db.scalars(select(LeaderboardEntry)):
+        assert entry.outcomes is not None
+        entry.outcomes = None
+    db.commit()
+    items = client.get(BOARD.format(slug="server-tiny")).json()["items"]
+    assert [(r["username"], r["tie_group"]) for r in items] == [("alice", 1), ("bob", 2)]

@@ -87,9 +87,9 @@ def core_result(successes: int) -> EvaluationResult:
 # Long names on purpose: the participant column must wrap them, not widen the table.
 PARTICIPANTS = (
     ("a-rather-long-username-01", EPISODES, False),
-    ("second-participant-name", EPISODES, False),  # the same score: tied with the first
+    ("second-participant-name", EPISODES, False),  # the same episodes: the first's group
     ("demo", EPISODES - 1, True),  # a baseline: the widest rank cell, and no rank
-    ("third", 0, False),  # far below the second: not tied
+    ("third", 0, False),  # lost every episode the second won: a group of its own
 )
 
 
@@ -185,14 +185,18 @@ def test_every_leaderboard_column_is_in_view_at_1280_px_with_ties_marked(
             if width == 1280:
                 page.screenshot(path=str(artefacts / "leaderboard-1280.png"), full_page=True)
                 ranks = page.locator("#board tbody td.col-rank")
-                expect(ranks.nth(0)).not_to_contain_text("tied")
-                tie = ranks.nth(1).locator(".badge-tie")
-                expect(tie).to_have_text("tied with rank 1")
-                expect(tie).to_have_attribute(
-                    "title", re.compile(r"^Statistically tied with rank 1")
+                group = [ranks.nth(i).locator(".badge-tie") for i in range(4)]
+                expect(group[0]).to_have_text("G1tie group 1: how groups are drawn")
+                expect(group[1]).to_have_text(
+                    "G1tie group 1, not significantly different from rank 1: how groups are drawn"
                 )
+                expect(group[1]).to_have_attribute(
+                    "title", re.compile(r"^Tie group 1: the paired test .* does not separate")
+                )
+                expect(group[1]).to_have_attribute("href", "/help/metrics#paired-significance")
                 expect(ranks.nth(2)).to_have_text("baseline")
-                expect(ranks.nth(3)).to_have_text("3")  # not tied with the second
+                # 18 of 18 paired episodes against none: separated from the second
+                expect(group[3]).to_have_text("G2tie group 2: how groups are drawn")
             page.close()
         browser.close()
     print("leaderboard table width (px) by viewport:", widths)  # for the record (pytest -s)
