@@ -79,9 +79,7 @@ def evaluate(
             workers, plan, source, shards, options, callback, should_stop, on_output
         )
     provenance = local_provenance(plan, policy_image=source.pinned_image())
-    return build_result(
-        plan, source.describe(), outcomes, started=started, provenance=provenance
-    )
+    return build_result(plan, source.describe(), outcomes, started=started, provenance=provenance)
 
 
 def build_result(
