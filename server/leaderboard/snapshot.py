@@ -31,6 +31,7 @@ from typing import Any
 from sqlalchemy import Text, cast, func, select
 from sqlalchemy.orm import Session as DB
 
+from evaluator.results import Environment
 from server.challenges.service import get_challenge
 from server.leaderboard.schemas import LeaderboardOut
 from server.leaderboard.service import (
@@ -41,6 +42,7 @@ from server.leaderboard.service import (
     interval_of_summary,
     overlaps,
     suite_columns,
+    suite_environment,
 )
 from server.leaderboard.stored import Stored, csv_header
 from server.models import Challenge, LeaderboardEntry
@@ -72,6 +74,7 @@ class Snapshot:
     tasks: list[str]
     conditions: list[str]
     suite_hash: str  # names the columns (tasks and conditions)
+    environment: Environment | None = None  # the suite's now, which rows are compared with
     checked: float = field(default_factory=time.monotonic)
     by_id: dict[int, Stored] = field(init=False)
     sorted_rows: dict[Sort, tuple[frozenset[int], list[Stored]]] = field(default_factory=dict)
@@ -245,19 +248,31 @@ def read_whole(
     entries = db.execute(board_query(phase_id, *_summary_columns())).all()
     challenge = get_challenge(db, slug=slug)
     tasks, conditions = suite_columns(challenge)
+    current = suite_environment(challenge)
     keep: dict[int, Stored] = {}
-    if held is not None and (held.tasks, held.conditions) == (tasks, conditions):
+    shown = (tasks, conditions, current)  # a row's mark is against the current environment
+    if held is not None and (held.tasks, held.conditions, held.environment) == shown:
         keep = held.by_id if db.get_bind().dialect.name in STABLE_IDS else {}
     intervals = [_interval(db, entry) for entry in entries]
     rows = [
-        keep.get(entry.id) or Stored(entry, entry.summary_text, interval)
+        keep.get(entry.id) or Stored(entry, entry.summary_text, interval, current)
         for entry, interval in zip(entries, intervals, strict=True)
     ]
     ranks: list[int | None] = []
     tied: list[bool] = []
     _rank(zip([e.baseline for e in entries], intervals, strict=True), ranks, tied)
     return Snapshot(
-        slug, phase, phase_id, version, rows, ranks, tied, tasks, conditions, challenge.suite_hash
+        slug,
+        phase,
+        phase_id,
+        version,
+        rows,
+        ranks,
+        tied,
+        tasks,
+        conditions,
+        challenge.suite_hash,
+        environment=current,
     )
 
 
@@ -280,7 +295,8 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
     new: list[Stored] = []
     if came:
         query = board_query(held.phase_id, *_summary_columns()).where(e.id.in_(came))
-        new = [Stored(r, r.summary_text, _interval(db, r)) for r in db.execute(query)]
+        current = held.environment
+        new = [Stored(r, r.summary_text, _interval(db, r), current) for r in db.execute(query)]
         if len(new) != len(came):
             return None  # refreshed between the two reads: the ids are not one state
     rows = [s for s in held.rows if s.id not in gone] if gone else list(held.rows)
@@ -303,6 +319,7 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
         held.tasks,
         held.conditions,
         held.suite_hash,
+        environment=held.environment,
         sorted_rows=dict(held.sorted_rows),
     )
 
