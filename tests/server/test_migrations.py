@@ -101,8 +101,8 @@ def test_names_differing_only_in_case_stop_the_upgrade_and_are_named(engine: Eng
         command.upgrade(config, "head")
 
 
-def test_0010_fills_each_board_rows_environment_from_its_result(tmp_path: Path) -> None:
-    """Rows stored before 0010 get the environment their result recorded: its provenance's,
+def test_0011_fills_each_board_rows_environment_from_its_result(tmp_path: Path) -> None:
+    """Rows stored before 0011 get the environment their result recorded: its provenance's,
     or for a document older than schema 1.2 what its versions and suite say."""
     url = f"sqlite:///{tmp_path / 'board.db'}"
     config = alembic_config(url)
@@ -121,7 +121,7 @@ def test_0010_fills_each_board_rows_environment_from_its_result(tmp_path: Path) 
                 result = EvaluationResult.model_validate(document)
                 assert report_final(db, s.id, 1, State.SUCCEEDED, "done", result=result)
             db.commit()
-        command.downgrade(config, "0009")
+        command.downgrade(config, "0010")
         with engine.connect() as conn:
             summaries = conn.execute(text("SELECT summary FROM leaderboard_entries")).scalars()
             assert all("environment" not in json.loads(s) for s in summaries)

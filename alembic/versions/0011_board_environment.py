@@ -5,9 +5,9 @@ No column changes: the environment goes into each row's summary (JSON), as the r
 from now on hold it. Rows made before have it filled from their submission's result document:
 its provenance where it has one (schema 1.2), else what its versions and suite say.
 
-Revision ID: 0010
-Revises: 0009
-Create Date: 2026-12-08
+Revision ID: 0011
+Revises: 0010
+Create Date: 2026-11-27
 """
 
 import re
@@ -17,8 +17,8 @@ from typing import Any
 import sqlalchemy as sa
 from alembic import op
 
-revision: str = "0010"
-down_revision: str | None = "0009"
+revision: str = "0011"
+down_revision: str | None = "0010"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
