@@ -3,19 +3,19 @@
 from __future__ import annotations
 
 import functools
-import platform
 from collections.abc import Callable
 from datetime import UTC, datetime
-from importlib import metadata
 from pathlib import Path
 
 from evaluator.plan import EvaluationPlan
 from evaluator.pool import can_start_processes, run_warm
+from evaluator.provenance import installed_versions, local_provenance
 from evaluator.results import (
     BudgetUse,
     ConditionResult,
     EpisodeResult,
     EvaluationResult,
+    Provenance,
     Versions,
     aggregate_task,
     condition_score,
@@ -78,7 +78,8 @@ def evaluate(
         outcomes = run_warm(
             workers, plan, source, shards, options, callback, should_stop, on_output
         )
-    return build_result(plan, source.describe(), outcomes, started=started)
+    provenance = local_provenance(plan, policy_image=source.pinned_image())
+    return build_result(plan, source.describe(), outcomes, started=started, provenance=provenance)
 
 
 def build_result(
@@ -88,8 +89,12 @@ def build_result(
     *,
     started: datetime,
     finished: Callable[[], datetime] = lambda: datetime.now(UTC),
+    versions: Versions | None = None,
+    provenance: Provenance | None = None,
 ) -> EvaluationResult:
-    """Merge shard outcomes; planned episodes that never ran are recorded as `not_run`."""
+    """Merge shard outcomes; planned episodes that never ran are recorded as `not_run`.
+    `versions` are those installed here unless given (the shards' own, when merged
+    elsewhere); `provenance` is where the episodes ran (`evaluator.provenance`)."""
     by_run: dict[int, dict[int, EpisodeResult]] = {i: {} for i in range(len(plan.runs))}
     for outcome in outcomes:
         for run_index, episode in outcome.episodes:
@@ -127,7 +132,8 @@ def build_result(
         suite=plan.suite,
         phase=plan.phase,
         policy=policy,
-        versions=installed_versions(),
+        versions=versions or installed_versions(),
+        provenance=provenance,
         started_at=started,
         finished_at=finished(),
         status="aborted" if abort else "completed",
@@ -138,15 +144,4 @@ def build_result(
         score=ordered[0].score if ordered else 0.0,
         conditions=ordered,
         videos=[video for outcome in outcomes for video in outcome.videos],
-    )
-
-
-def installed_versions() -> Versions:
-    """Versions of everything that decides the numbers, for the result document."""
-    return Versions(
-        manieval=metadata.version("manieval"),
-        mani_skill=metadata.version("mani_skill"),
-        sapien=metadata.version("sapien"),
-        torch=metadata.version("torch"),
-        python=platform.python_version(),
     )

@@ -23,9 +23,17 @@ import typer
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from evaluator.evaluation import build_result, installed_versions
+from evaluator.evaluation import build_result
 from evaluator.plan import EvaluationPlan, suite_plan, task_run
-from evaluator.results import Abort, EpisodeResult, EvaluationResult, Versions, Video
+from evaluator.provenance import installed_versions, local_provenance, merge
+from evaluator.results import (
+    Abort,
+    EpisodeResult,
+    EvaluationResult,
+    Provenance,
+    Versions,
+    Video,
+)
 from evaluator.runner import RunOptions, ShardOutcome, make_shards, run_shard
 from evaluator.suite import SEED_LIMIT, Suite, SuiteError
 
@@ -127,6 +135,10 @@ class ExternalPolicy:
         """How the result document names the policy (the pinned image)."""
         return self.name
 
+    def pinned_image(self) -> str | None:
+        """The policy's image: the Job names it pinned by digest (None: it named none)."""
+        return self.name if "@sha256:" in self.name else None
+
     def launch(self, *, endpoint: str, socket_dir: Path) -> ExternalProcess:
         """Nothing to start: the policy connects to `endpoint` on its own."""
         return ExternalProcess()
@@ -141,6 +153,8 @@ class ShardReport(BaseModel):
     shards: int = Field(ge=1)
     policy: str
     versions: Versions
+    provenance: Provenance | None = None
+    """Where this shard ran (None from an evaluator image older than schema 1.2)."""
     started_at: datetime
     finished_at: datetime
     episodes: list[tuple[int, EpisodeResult]]
@@ -174,13 +188,17 @@ def run_job(
             outcome = run_shard(plan, source, present[index], options=options, on_episode=_progress)
         finally:
             os.umask(previous)
+    provenance = local_provenance(plan, policy_image=source.pinned_image())
     if shards == 1:
-        return build_result(plan, source.describe(), [outcome], started=started)
+        return build_result(
+            plan, source.describe(), [outcome], started=started, provenance=provenance
+        )
     return ShardReport(
         index=index,
         shards=shards,
         policy=source.describe(),
         versions=installed_versions(),
+        provenance=provenance,
         started_at=started,
         finished_at=datetime.now(UTC),
         episodes=outcome.episodes,
@@ -252,14 +270,22 @@ def result_from_logs(plan: EvaluationPlan, logs: Sequence[str]) -> EvaluationRes
         )
         for r in reports
     ]
-    result = build_result(
+    return build_result(
         plan,
         reports[0].policy,
         outcomes,
         started=min(r.started_at for r in reports),
         finished=lambda: max(r.finished_at for r in reports),
+        versions=reports[0].versions,
+        provenance=_merged_provenance(reports),
     )
-    return result.model_copy(update={"versions": reports[0].versions})
+
+
+def _merged_provenance(reports: Sequence[ShardReport]) -> Provenance | None:
+    """The shards' provenance merged (`evaluator.provenance.merge`); None when a shard has
+    none to give (an older evaluator image)."""
+    found = [r.provenance for r in reports if r.provenance is not None]
+    return merge(found) if len(found) == len(reports) else None
 
 
 def load_job(spec: str | None, spec_file: Path | None) -> EvaluationJob:

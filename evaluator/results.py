@@ -12,8 +12,9 @@ from evaluator.stats import wilson_interval
 
 # 1.1: `success_at_end` is null when the suite does not measure it (episodes that stop at the
 # first success); `budget` and each episode's `policy_time_s` say how much time the policy took.
-# A 1.0 document still reads as one.
-RESULT_SCHEMA_VERSION: Literal["1.1"] = "1.1"
+# 1.2: `provenance` says what produced the numbers (docs/metrics.md, Provenance).
+# A 1.0 or 1.1 document still reads as one, with no provenance.
+RESULT_SCHEMA_VERSION: Literal["1.2"] = "1.2"
 
 FailureKind = Literal[
     "invalid_action",
@@ -118,14 +119,75 @@ class SuiteRef(_Doc):
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
 
 
+class Environment(_Doc):
+    """What decides the scores besides the policy and the seeds, in the form the service
+    compares with the environment it would evaluate in now (`evaluator.provenance`)."""
+
+    mani_skill: str | None
+    sapien: str | None
+    torch: str | None = Field(description="Without its local label: 2.13.0 for 2.13.0+cpu")
+    numpy: str | None
+    sim_backend: str = Field(description="The tasks' simulation backends, joined by '+'")
+    render_backend: str = Field(description="The renderers those backends use, joined by '+'")
+    suite_sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+
+
+class Machine(_Doc):
+    """Where episodes ran: the CPU's model name and the GPUs the evaluator saw (null: none)."""
+
+    cpu: str | None
+    gpu: str | None
+
+
+class EvaluatorBuild(_Doc):
+    """The evaluator's code: ManiEval's version, its git commit when run from a checkout, and
+    the evaluator image (Kubernetes) as the Job names it."""
+
+    manieval: str
+    commit: str | None = None
+    image: str | None = None
+
+
+class ScoringSettings(_Doc):
+    """The suite's settings that change what a policy scores (all of them in the suite's hash)."""
+
+    ignore_terminations: bool
+    control_mode: dict[str, str] = Field(description="Each task's controller")
+    max_episode_steps: dict[str, int] = Field(description="Each task's step limit")
+    action_chunk_max: int = Field(ge=1, description="The longest action chunk taken")
+    action_chunk_execute: int = Field(ge=1, description="Actions of a chunk executed")
+
+
+class Provenance(_Doc):
+    """What produced a result (schema 1.2): see docs/metrics.md, Provenance."""
+
+    environment: Environment
+    suite_version: int
+    evaluator: EvaluatorBuild
+    policy_image: str | None = Field(
+        description="The policy's image, pinned by digest; null for a policy that is no image"
+    )
+    machines: list[Machine] = Field(
+        min_length=1, description="The distinct machines the shards ran on, in shard order"
+    )
+    settings: ScoringSettings
+    shards: int = Field(default=1, ge=1)
+    shard_differences: dict[str, list[str | None]] = Field(
+        default={},
+        description="Environment fields on which the shards differed, with each shard's value "
+        "(empty: every shard ran in `environment`)",
+    )
+
+
 class EvaluationResult(_Doc):
     """What an evaluation produced: the document the server stores and the CLI prints."""
 
-    schema_version: Literal["1.0", "1.1"] = RESULT_SCHEMA_VERSION
+    schema_version: Literal["1.0", "1.1", "1.2"] = RESULT_SCHEMA_VERSION
     suite: SuiteRef
     phase: str
     policy: str
     versions: Versions
+    provenance: Provenance | None = None
     started_at: datetime
     finished_at: datetime
     status: Literal["completed", "aborted"]

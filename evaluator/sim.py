@@ -15,6 +15,7 @@ import numpy as np
 
 from evaluator.conditions import ConditionRuntime, Observation
 from evaluator.plan import TaskRun
+from evaluator.provenance import render_backend
 
 
 def make_env(
@@ -25,7 +26,6 @@ def make_env(
     import gymnasium as gym
     import mani_skill.envs  # noqa: F401  (registers the ManiSkill environments)
 
-    cpu = run.sim_backend == "physx_cpu"
     camera = {"width": frame_size, "height": frame_size} if render and frame_size else None
     env = gym.make(
         run.env_id,
@@ -33,7 +33,7 @@ def make_env(
         obs_mode=run.obs_mode,
         control_mode=run.control_mode,
         sim_backend=run.sim_backend,
-        render_backend="sapien_cpu" if cpu else "gpu",
+        render_backend=render_backend(run.sim_backend),
         render_mode="rgb_array" if render else None,
         **({"human_render_camera_configs": camera} if camera else {}),
         max_episode_steps=run.max_episode_steps * 100,  # the evaluator enforces the real limit

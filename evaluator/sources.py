@@ -124,6 +124,10 @@ class PolicySource(Protocol):
 
     def describe(self) -> str: ...
 
+    def pinned_image(self) -> str | None:
+        """The policy's image, pinned by digest (None: the policy is no image)."""
+        ...
+
     def launch(self, *, endpoint: str, socket_dir: Path) -> PolicyProcess: ...
 
 
@@ -276,6 +280,10 @@ class LocalDirectory:
     def describe(self) -> str:
         """How the result document names this policy."""
         return f"dir:{self.path.resolve()}"
+
+    def pinned_image(self) -> None:
+        """None: a directory is no image."""
+        return None
 
     def launch(self, *, endpoint: str, socket_dir: Path) -> LocalProcess:
         """Start `python policy.py` with a minimal environment (no secrets of ours leak in)."""

@@ -12,16 +12,22 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
+from evaluator.provenance import environment
 from evaluator.results import (
     Abort,
     ConditionResult,
     EpisodeResult,
     EvaluationResult,
+    EvaluatorBuild,
+    Machine,
+    Provenance,
+    ScoringSettings,
     SuiteRef,
     Versions,
     aggregate_task,
 )
 from evaluator.runner import failed_episode
+from evaluator.suite import load_suite
 from server.accounts import service as accounts
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
@@ -107,6 +113,27 @@ def gpu_suite(directory: Path, *, gpus: int = 1) -> Path:
     return path
 
 
+def tiny_provenance(**environment_changes: str) -> Provenance:
+    """The provenance of a server-tiny result evaluated in the environment this installation
+    evaluates the suite in now, but for `environment_changes`."""
+    suite = load_suite(SUITE)
+    now = environment(suite_sha256=suite.sha256(), sim_backends=["physx_cpu"])
+    return Provenance(
+        environment=now.model_copy(update=environment_changes),
+        suite_version=suite.version,
+        evaluator=EvaluatorBuild(manieval="0.1.0", commit="f" * 40),
+        policy_image="x@sha256:" + "0" * 64,
+        machines=[Machine(cpu="AMD EPYC 7B13", gpu=None)],
+        settings=ScoringSettings(
+            ignore_terminations=False,
+            control_mode={"PickCube-v1": "pd_ee_delta_pose"},
+            max_episode_steps={"PickCube-v1": 12},
+            action_chunk_max=1,
+            action_chunk_execute=1,
+        ),
+    )
+
+
 def result_doc(
     successes: list[bool],
     *,
@@ -114,10 +141,13 @@ def result_doc(
     conditions: tuple[str, ...] = ("nominal",),
     planned: int | None = None,
     abort: Abort | None = None,
+    provenance: Provenance | None = None,
+    recorded: bool = True,
 ) -> EvaluationResult:
     """A result of PickCube-v1 on the server-tiny suite: these episode outcomes, the same task
     under every condition; with `planned` more than ran, the rest `not_run` as the evaluator
-    records them (aborted with `abort`, or completed as a cancelled evaluation is)."""
+    records them (aborted with `abort`, or completed as a cancelled evaluation is). Its
+    provenance is `provenance`, by default `tiny_provenance()`; none unless `recorded`."""
     episodes = [
         EpisodeResult(
             index=i,
@@ -140,10 +170,11 @@ def result_doc(
     task = aggregate_task("PickCube-v1", len(episodes), episodes)
     now = datetime.now(UTC)
     return EvaluationResult(
-        suite=SuiteRef(name="server-tiny", version=1, sha256="0" * 64),
+        suite=SuiteRef(name="server-tiny", version=1, sha256=load_suite(SUITE).sha256()),
         phase=phase,
         policy="test",
         versions=Versions(manieval="0", mani_skill="0", sapien="0", torch="0", python="3"),
+        provenance=(provenance or tiny_provenance()) if recorded else None,
         started_at=now,
         finished_at=now,
         status="aborted" if abort else "completed",

@@ -267,6 +267,10 @@ class ContainerImage:
         """How the result document names this policy."""
         return f"image:{self.image}"
 
+    def pinned_image(self) -> str:
+        """The image, pinned by digest (or a local image's ID)."""
+        return self.image
+
     def pull(self) -> None:
         """Fetch the image ahead of the evaluation, so its time is not the policy's."""
         client = engine(self.engine_url)

@@ -38,6 +38,13 @@ class LeaderboardRowOut(BaseModel):
         "pooled; null only for a submission with no results.",
     )
     score_ci_high: float | None = Field(default=None, description="The interval's upper end.")
+    environment_differs: list[str] = Field(
+        default=[],
+        description="What of the entry's evaluation environment differs from the one the "
+        "service would evaluate in now: any of mani_skill, sapien, torch, numpy, sim_backend, "
+        "render_backend, suite_sha256 (docs/metrics.md, Provenance); empty: the same, or not "
+        "known.",
+    )
     tied: bool = Field(
         default=False,
         description="In the tie group of the ranked row above: McNemar's exact test on their "

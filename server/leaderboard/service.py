@@ -19,6 +19,8 @@ from typing import Any, TypeVar
 from sqlalchemy import Select, and_, func, select
 from sqlalchemy.orm import Session as DB
 
+from evaluator.provenance import differences, environment
+from evaluator.results import Environment
 from server.challenges.charts import ScorePoint
 from server.challenges.service import get_challenge, get_phase, suite_of
 from server.kit.errors import NotFound
@@ -65,6 +67,25 @@ def suite_columns(challenge: Challenge) -> tuple[list[str], list[str]]:
             while len(_COLUMNS) > 64:
                 _COLUMNS.popitem(last=False)
     return list(found[0]), list(found[1])
+
+
+_ENVIRONMENTS: OrderedDict[str, Environment] = OrderedDict()
+
+
+def suite_environment(challenge: Challenge) -> Environment:
+    """The environment the service would evaluate the challenge's suite in now
+    (`evaluator.provenance.environment`); kept per suite hash, as `suite_columns` is."""
+    with _COLUMNS_LOCK:
+        found = _ENVIRONMENTS.get(challenge.suite_hash)
+    if found is None:
+        suite = suite_of(challenge)
+        backends = [t.sim_backend for t in suite.tasks]
+        found = environment(suite_sha256=suite.sha256(), sim_backends=backends)
+        with _COLUMNS_LOCK:
+            _ENVIRONMENTS[challenge.suite_hash] = found
+            while len(_ENVIRONMENTS) > 64:
+                _ENVIRONMENTS.popitem(last=False)
+    return found
 
 
 def baseline_points(db: DB, *, phase_id: int) -> list[tuple[str, float, datetime]]:
@@ -132,6 +153,9 @@ class Row:
     method: str | None = None
     paper_url: str | None = None
     code_url: str | None = None
+    environment_differs: tuple[str, ...] = ()
+    """What of its evaluation environment differs from the service's current one (none:
+    the same, or not known): docs/metrics.md, Provenance."""
 
     @property
     def participant(self) -> str:
@@ -189,8 +213,16 @@ def board_query(phase_id: int, *summary: Any) -> Select[*tuple[Any, ...]]:
 Interval = tuple[float, float] | None
 
 
-def board_row(entry: Any, data: dict[str, Any], rank: int | None, interval: Interval) -> Row:
-    """A row as boards show it, from its entry's columns and summary."""
+def board_row(
+    entry: Any,
+    data: dict[str, Any],
+    rank: int | None,
+    interval: Interval,
+    current: Environment | None = None,
+) -> Row:
+    """A row as boards show it, from its entry's columns and summary; marked where its
+    environment differs from `current` (the suite's now)."""
+    recorded = data.get("environment") or {}
     return Row(
         rank=rank,
         username=entry.username,
@@ -207,6 +239,7 @@ def board_row(entry: Any, data: dict[str, Any], rank: int | None, interval: Inte
         method=entry.method,
         paper_url=entry.paper_url,
         code_url=entry.code_url,
+        environment_differs=tuple(differences(recorded, current)) if current else (),
     )
 
 

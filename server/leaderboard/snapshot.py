@@ -33,6 +33,7 @@ from typing import Any
 from sqlalchemy import Text, cast, func, select
 from sqlalchemy.orm import Session as DB
 
+from evaluator.results import Environment
 from server.challenges.service import get_challenge
 from server.leaderboard.schemas import LeaderboardOut
 from server.leaderboard.service import (
@@ -42,6 +43,7 @@ from server.leaderboard.service import (
     board_version,
     interval_of_summary,
     suite_columns,
+    suite_environment,
 )
 from server.leaderboard.stored import Place, Stored, csv_header
 from server.leaderboard.ties import TieGroups, count_groups, outcomes_of
@@ -75,6 +77,7 @@ class Snapshot:
     tasks: list[str]
     conditions: list[str]
     suite_hash: str  # names the columns (tasks and conditions)
+    environment: Environment | None = None  # the suite's now, which rows are compared with
     checked: float = field(default_factory=time.monotonic)
     by_id: dict[int, Stored] = field(init=False)
     sorted_rows: dict[Sort, tuple[frozenset[int], list[Stored]]] = field(default_factory=dict)
@@ -259,10 +262,12 @@ def read_whole(
     entries = db.execute(board_query(phase_id, *_summary_columns())).all()
     challenge = get_challenge(db, slug=slug)
     tasks, conditions = suite_columns(challenge)
+    current = suite_environment(challenge)
     keep: dict[int, Stored] = {}
-    if held is not None and (held.tasks, held.conditions) == (tasks, conditions):
+    shown = (tasks, conditions, current)  # a row's mark is against the current environment
+    if held is not None and (held.tasks, held.conditions, held.environment) == shown:
         keep = held.by_id if db.get_bind().dialect.name in STABLE_IDS else {}
-    rows = [keep.get(entry.id) or _stored(db, entry) for entry in entries]
+    rows = [keep.get(entry.id) or _stored(db, entry, current) for entry in entries]
     ranks: list[int | None] = []
     _rank((s.baseline for s in rows), ranks)
     alpha = next(p.significance_level for p in challenge.phases if p.id == phase_id)
@@ -280,11 +285,13 @@ def read_whole(
         tasks,
         conditions,
         challenge.suite_hash,
+        environment=current,
     )
 
 
-def _stored(db: DB, entry: Any) -> Stored:
-    return Stored(entry, entry.summary_text, _interval(db, entry), outcomes_of(db, entry))
+def _stored(db: DB, entry: Any, current: Environment | None) -> Stored:
+    interval, outcomes = _interval(db, entry), outcomes_of(db, entry)
+    return Stored(entry, entry.summary_text, interval, outcomes, current)
 
 
 def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
@@ -310,7 +317,8 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
     new: list[Stored] = []
     if came:
         query = board_query(held.phase_id, *_summary_columns()).where(e.id.in_(came))
-        new = [_stored(db, r) for r in db.execute(query)]
+        current = held.environment
+        new = [_stored(db, r, current) for r in db.execute(query)]
         if len(new) != len(came):
             return None  # refreshed between the two reads: the ids are not one state
     rows = [s for s in held.rows if s.id not in gone] if gone else list(held.rows)
@@ -335,6 +343,7 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
         held.tasks,
         held.conditions,
         held.suite_hash,
+        environment=held.environment,
         sorted_rows=dict(held.sorted_rows),
     )
 

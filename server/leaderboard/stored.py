@@ -17,12 +17,15 @@ from collections.abc import Callable, Hashable, Sequence
 from typing import Any
 
 from evaluator.paired import PackedOutcomes
+from evaluator.results import Environment
 from server.leaderboard.schemas import LeaderboardRowOut
 from server.leaderboard.service import Interval, Row, board_row
 
 CSV_HEADER = ["rank", "username", "baseline", "score", "score_ci_low", "score_ci_high", "tied"]
 CSV_HEADER += ["tie_group", "submitted_at", "submission_id", "team", "team_display_name", "method"]
 CSV_HEADER += ["paper_url", "code_url"]
+ENVIRONMENT_COLUMN = "environment_differs"
+"""The CSV's last column: the environment fields that differ, joined by ";"."""
 
 
 _SERIALS = itertools.count(1)
@@ -46,7 +49,7 @@ def csv_header(tasks: Sequence[str], conditions: Sequence[str]) -> str:
     header = CSV_HEADER + [f"{t} success" for t in tasks]
     header += [f"{t} ci_low" for t in tasks] + [f"{t} ci_high" for t in tasks]
     header += [f"condition {c}" for c in conditions]
-    return _csv_line(header)
+    return _csv_line([*header, ENVIRONMENT_COLUMN])
 
 
 def _csv_line(cells: Sequence[object]) -> str:
@@ -87,6 +90,7 @@ class Stored:
         "_html",
         "_json",
         "_sorts",
+        "current",
         "interval",
         "key",
         "outcomes",
@@ -112,6 +116,7 @@ class Stored:
         summary_text: str,
         interval: Interval,
         outcomes: PackedOutcomes | None = None,
+        current: Environment | None = None,
     ) -> None:
         for name in ENTRY_FIELDS:
             setattr(self, name, getattr(entry, name))
@@ -122,6 +127,8 @@ class Stored:
         self.interval = interval
         self.outcomes = outcomes
         """The ranked condition's episodes, packed: what the tie groups pair."""
+        self.current = current
+        """The environment the row's is compared with: the suite's now (`Snapshot`)."""
         self.key: tuple[float, Any, int] = (-entry.score, entry.submitted_at, entry.id)
         """The rank order: higher score, then earlier, then lower id (the database's order)."""
         self._json: bytes | None = None
@@ -131,7 +138,7 @@ class Stored:
 
     def row(self, tasks: Sequence[str], conditions: Sequence[str]) -> Row:
         """The row as pages show it, unranked and in no tie group."""
-        done = board_row(self, json.loads(self.summary), None, self.interval)
+        done = board_row(self, json.loads(self.summary), None, self.interval, self.current)
         return done.in_order(tasks=tasks, conditions=conditions)
 
     def sort_value(
@@ -199,4 +206,5 @@ class Stored:
         for key in ("success_rate", "ci_low", "ci_high"):
             after += [f"{row.tasks[t][key]:.4f}" if t in row.tasks else "" for t in tasks]
         after += [f"{row.conditions[c]:.4f}" if c in row.conditions else "" for c in conditions]
+        after.append(";".join(row.environment_differs))
         return _csv_line(between).removesuffix("\r\n"), _csv_line(after)

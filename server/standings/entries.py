@@ -24,6 +24,7 @@ from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session as DB
 
 from evaluator.paired import Outcome, PackedOutcomes
+from evaluator.provenance import recorded_environment
 from evaluator.results import condition_means
 from evaluator.stats import wilson_interval
 from server.models import (
@@ -241,6 +242,8 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
         "tasks": tasks,
         # The score's 95% interval: Wilson over the first condition's episodes pooled.
         "score_interval": list(wilson_interval(successes, episodes)) if rows else None,
+        # Compared with the service's current one when the board is read (docs/metrics.md).
+        "environment": recorded_environment(submission.result or {}),
     }
 
 

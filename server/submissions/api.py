@@ -34,6 +34,7 @@ from server.submissions.service import (
     get_owned,
     get_visible,
     list_submissions,
+    provenance_of,
     rerun,
     submit,
     task_rows,
@@ -134,6 +135,7 @@ def submission_detail(
         ],
         tasks=[TaskResultOut.model_validate(r, from_attributes=True) for r in rows],
         conditions=condition_means(rows),
+        provenance=provenance_of(s),
     )
 
 

@@ -8,6 +8,7 @@ from typing import Annotated
 
 from pydantic import BaseModel, Field
 
+from evaluator.results import Provenance
 from server.kit.schemas import InBody
 from server.models import State
 from server.submissions.method import METHOD_MAX, METHOD_PATTERN, URL_MAX, URL_PATTERN
@@ -123,6 +124,13 @@ class SubmissionDetail(SubmissionOut):
     conditions: dict[str, float] = Field(
         description="each condition's mean success rate over its tasks, for the conditions "
         "whose every planned episode ran"
+    )
+    provenance: Provenance | None = Field(
+        default=None,
+        description="what produced the current attempt's result: the evaluation environment, "
+        "the evaluator, the policy's image, the machines and the settings that change scores "
+        "(docs/metrics.md, Provenance); null without a result or for one recorded before "
+        "result schema 1.2",
     )
 
 

@@ -358,6 +358,13 @@ def _outcome(row: TaskResultRow) -> TaskOutcome:
     )
 
 
+def provenance_of(submission: Submission) -> results.Provenance | None:
+    """What produced the current attempt's result (None: no result, or one recorded before
+    schema 1.2)."""
+    found = (submission.result or {}).get("provenance")
+    return results.Provenance.model_validate(found) if found else None
+
+
 def condition_means(rows: list[TaskOutcome]) -> dict[str, float]:
     """Each condition's mean success rate over its tasks, for the conditions whose every
     planned episode ran."""

@@ -35,6 +35,9 @@ class Crashing:
     def describe(self) -> str:
         return "crashing"
 
+    def pinned_image(self) -> None:
+        return None
+
     def launch(self, *, endpoint: str, socket_dir: Path) -> Any:
         os._exit(3)
 

@@ -38,6 +38,7 @@ from evaluator.job import (
     EvaluationJob,
 )
 from evaluator.plan import EvaluationPlan
+from evaluator.provenance import EVALUATOR_IMAGE_ENV
 from evaluator.suite import Limits
 from internal_api.schemas import PINNED_IMAGE
 from manieval_sdk.serve import ENDPOINT_ENV
@@ -348,6 +349,7 @@ def _evaluator_container(spec: JobSpec) -> dict[str, Any]:
         POLICY_ENV: spec.policy_image,
         SHARDS_ENV: str(spec.shards),
         ENDPOINT_DIR_ENV: ENDPOINT_DIR,
+        EVALUATOR_IMAGE_ENV: spec.evaluator_image,  # recorded in the result's provenance
         "HOME": "/tmp",
         "TMPDIR": "/tmp",
     }
