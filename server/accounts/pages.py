@@ -16,7 +16,7 @@ from server.accounts.mail import duration, letters_for, send_after
 from server.kit.deps import SESSION_COOKIE, DBDep, Id, client_ip, limit, services
 from server.kit.errors import AppError, Invalid, NotFound, Unauthorized
 from server.kit.pages import Viewer, redirect, render, safe_next, signed_in
-from server.models import User
+from server.models import User, team_of
 
 router = APIRouter(include_in_schema=False)
 
@@ -181,7 +181,7 @@ def _account(
         status=status,
         user=user,
         tokens=accounts.list_tokens(db, user=user),
-        team=accounts.team_of(db, user=user),
+        team=team_of(db, user_id=user.id),
         **context,
     )
 

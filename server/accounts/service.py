@@ -13,7 +13,7 @@ from sqlalchemy.orm import joinedload
 from server.kit import security
 from server.kit.errors import AppError, Conflict, Invalid, RateLimited, Unauthorized
 from server.kit.ratelimit import Rate, RateLimiter
-from server.models import ApiToken, Session, Team, TeamMember, User, utcnow
+from server.models import ApiToken, Session, User, utcnow
 
 MAX_TOKENS_PER_USER = 50
 
@@ -323,13 +323,3 @@ def revoke_token(db: DB, *, user: User, token_id: int) -> ApiToken | None:
     if token.revoked_at is None:
         token.revoked_at = utcnow()
     return token
-
-
-def team_of(db: DB, *, user: User) -> Team | None:
-    """The user's team, or None (server/teams/ makes and changes teams; an account page and
-    every team page ask this)."""
-    return db.scalar(
-        select(Team)
-        .join(TeamMember, TeamMember.team_id == Team.id)
-        .where(TeamMember.user_id == user.id)
-    )

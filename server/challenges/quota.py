@@ -11,7 +11,17 @@ from sqlalchemy import ColumnElement, func, or_, select
 from sqlalchemy.orm import Session as DB
 
 from server.kit.errors import QuotaExceeded
-from server.models import ACTIVE_STATES, Challenge, State, Submission, Team, TeamMember, User
+from server.models import (
+    ACTIVE_STATES,
+    Challenge,
+    State,
+    Submission,
+    Team,
+    TeamMember,
+    User,
+    team_id_of,
+    team_of,
+)
 
 # A submission reserves quota from the moment it is accepted; if it ends in `error` (our
 # fault) or `cancelled` the reservation is released. Running and policy-caused endings count.
@@ -34,13 +44,7 @@ class QuotaUse:
 
 def _team(db: DB, *, user: User, challenge: Challenge) -> Team | None:
     """The team whose quota the user draws on: theirs, in a challenge with team mode on."""
-    if not challenge.team_mode:
-        return None
-    return db.scalar(
-        select(Team)
-        .join(TeamMember, TeamMember.team_id == Team.id)
-        .where(TeamMember.user_id == user.id)
-    )
+    return team_of(db, user_id=user.id) if challenge.team_mode else None
 
 
 def _counted(user: User, team: Team | None) -> ColumnElement[bool]:
@@ -86,7 +90,7 @@ def check_quota(db: DB, *, user: User, challenge: Challenge, now: datetime) -> i
     # Lock the user, then their team: two submissions of one user, or of two members of one
     # team, cannot both pass the quota. Team changes take the same locks in the same order.
     db.execute(select(User.id).where(User.id == user.id).with_for_update(key_share=True))
-    team_id = db.scalar(select(TeamMember.team_id).where(TeamMember.user_id == user.id))
+    team_id = team_id_of(db, user_id=user.id)
     if team_id is not None and challenge.team_mode:
         db.execute(select(Team.id).where(Team.id == team_id).with_for_update(key_share=True))
     use = quota_use(db, user=user, challenge=challenge, now=now)

@@ -20,7 +20,7 @@ from server.models.submissions import (
     TaskResultRow,
     Transition,
 )
-from server.models.teams import Team, TeamInvitation, TeamMember
+from server.models.teams import Team, TeamInvitation, TeamMember, team_id_of, team_of
 
 __all__ = [
     "ACTIVE_STATES",
@@ -44,5 +44,7 @@ __all__ = [
     "Transition",
     "UTCDateTime",
     "User",
+    "team_id_of",
+    "team_of",
     "utcnow",
 ]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import Boolean, ForeignKey, String, UniqueConstraint
-from sqlalchemy.orm import Mapped, mapped_column, relationship
+from sqlalchemy import Boolean, ForeignKey, String, UniqueConstraint, select
+from sqlalchemy.orm import Mapped, Session, mapped_column, relationship
 
 from server.models.accounts import User
 from server.models.base import Base, utcnow
@@ -60,3 +60,18 @@ class TeamInvitation(Base):
 
     team: Mapped[Team] = relationship(lazy="raise")
     user: Mapped[User] = relationship(lazy="raise", foreign_keys=[user_id])
+
+
+def team_id_of(db: Session, *, user_id: int) -> int | None:
+    """The id of the user's team, or None: the one reading of who is in which team (stable
+    while the user's row is locked, as a submission and every team change lock it)."""
+    return db.scalar(select(TeamMember.team_id).where(TeamMember.user_id == user_id))
+
+
+def team_of(db: Session, *, user_id: int) -> Team | None:
+    """The user's team, or None."""
+    return db.scalar(
+        select(Team)
+        .join(TeamMember, TeamMember.team_id == Team.id)
+        .where(TeamMember.user_id == user_id)
+    )

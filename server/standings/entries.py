@@ -36,8 +36,8 @@ from server.models import (
     Submission,
     TaskResultRow,
     Team,
-    TeamMember,
     User,
+    team_id_of,
 )
 
 
@@ -112,7 +112,7 @@ def _fill_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mode:
     chosen = [s for s in eligible if s.baseline]
     own = [s for s in eligible if not s.baseline]
     if team_mode:
-        in_team = db.scalar(select(TeamMember.team_id).where(TeamMember.user_id == user_id))
+        in_team = team_id_of(db, user_id=user_id)
         gone = _dissolved(db, team_ids={s.team_id for s in own if s.team_id is not None})
         own = [] if in_team is not None else [s for s in own if s.team_id in gone | {None}]
     chosen += own[:1]

@@ -9,12 +9,11 @@ from fastapi import APIRouter
 from fastapi import Path as FastAPIPath
 from sqlalchemy.orm import Session as DB
 
-from server.accounts import service as accounts
 from server.accounts.deps import CallerDep, UserDep
 from server.kit.deps import DBDep, Id
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import Ok
-from server.models import Team, TeamInvitation, User
+from server.models import Team, TeamInvitation, User, team_of
 from server.teams import service as teams
 from server.teams.schemas import (
     InvitationOut,
@@ -79,7 +78,7 @@ def show_team(name: NamePath, who: CallerDep, db: DBDep) -> TeamOut:
 @router.get("/team")
 def my_team(user: UserDep, db: DBDep) -> MyTeamOut:
     """Your team (null when you are in none) and the invitations waiting for your answer."""
-    team = accounts.team_of(db, user=user)
+    team = team_of(db, user_id=user.id)
     mine = teams.invitations_for(db, user=user)
     inviters = teams.inviter_names(db, invitations=mine)
     return MyTeamOut(
@@ -133,7 +132,7 @@ def decline(invitation_id: Id, user: UserDep, db: DBDep) -> Ok:
 def leave(user: UserDep, db: DBDep) -> LeftOut:
     """Leave your team. An admin who leaves hands the role to the member who joined first; the
     last member to leave dissolves the team."""
-    team = accounts.team_of(db, user=user)
+    team = team_of(db, user_id=user.id)
     name = team.name if team is not None else ""
     kept = teams.leave(db, user=user)
     db.commit()

@@ -33,11 +33,6 @@ def hold(db: DB, *, users: Iterable[int], teams: Iterable[int] = ()) -> None:
         db.execute(select(Team.id).where(Team.id == team_id).with_for_update(key_share=True))
 
 
-def team_id_of(db: DB, *, user_id: int) -> int | None:
-    """The id of the user's team (stable while the user's row is locked)."""
-    return db.scalar(select(TeamMember.team_id).where(TeamMember.user_id == user_id))
-
-
 def membership(db: DB, *, user_id: int) -> TeamMember | None:
     """The user's membership as the database has it now (read after the locks: the admin flag
     changes under the team's lock, not the user's)."""

@@ -9,12 +9,11 @@ from fastapi import APIRouter, Form, Path, Query, Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
-from server.accounts import service as accounts
 from server.accounts.deps import PostedDep, ViewerDep
 from server.kit.deps import DBDep, Id
 from server.kit.errors import AppError
 from server.kit.pages import Viewer, redirect, render, signed_in
-from server.models import Team, User
+from server.models import Team, User, team_of
 from server.teams import service as teams
 
 router = APIRouter(include_in_schema=False)
@@ -36,7 +35,7 @@ NOTICES = {
 
 def _mine(request: Request, who: Viewer, db: DB, **context: Any) -> Response:
     user = signed_in(request, who)
-    team = accounts.team_of(db, user=user)
+    team = team_of(db, user_id=user.id)
     invitations = teams.invitations_for(db, user=user)
     context = {"errors": {}, "message": "", "notice": "", "form": {}, **context}
     return render(

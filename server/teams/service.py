@@ -27,7 +27,7 @@ from server.accounts import service as accounts
 from server.kit.errors import Conflict, Forbidden, Invalid, NotFound
 from server.kit.schemas import text_problem
 from server.kit.security import RESERVED_USERNAMES, TEAM_NAME_GRAMMAR
-from server.models import Team, TeamInvitation, TeamMember, User, utcnow
+from server.models import Team, TeamInvitation, TeamMember, User, team_id_of, utcnow
 from server.standings.entries import refresh_member, release_team
 from server.teams import locks
 
@@ -145,7 +145,7 @@ def create_team(db: DB, *, user: User, name: str, display_name: str) -> Team:
         raise Invalid(problem, fields={"name": problem})
     shown = _display_name(display_name)
     locks.hold(db, users={user.id})
-    if (current := locks.team_id_of(db, user_id=user.id)) is not None:
+    if (current := team_id_of(db, user_id=user.id)) is not None:
         raise Conflict(_in_team(db, current), fields={"name": _in_team(db, current)})
     if db.scalar(select(Team.id).where(Team.name == name)) is not None:
         raise Conflict(f"the team name {name!r} is taken", fields={"name": "taken"})
@@ -193,7 +193,7 @@ def invite(db: DB, *, admin: User, team: Team, username: str) -> TeamInvitation:
     invitee = accounts.user_named(db, username=username)
     if invitee is None:
         raise NotFound(f"no user {username!r}", fields={"username": "no such user"})
-    if locks.team_id_of(db, user_id=invitee.id) == team.id:
+    if team_id_of(db, user_id=invitee.id) == team.id:
         raise Conflict(f"{username} is already in the team", fields={"username": "a member"})
     pending = db.scalar(
         select(func.count()).select_from(TeamInvitation).where(TeamInvitation.team_id == team.id)
@@ -233,13 +233,13 @@ def _invitation_for(db: DB, *, user: User, invitation_id: int) -> TeamInvitation
 
 def accept(db: DB, *, user: User, invitation_id: int) -> Team:
     """Join the team that invited the user; the invitation is used up."""
-    if (current := locks.team_id_of(db, user_id=user.id)) is not None:
+    if (current := team_id_of(db, user_id=user.id)) is not None:
         raise Conflict(_in_team(db, current))
     invited = _invitation_for(db, user=user, invitation_id=invitation_id)
     locks.hold(db, users={user.id}, teams={invited.team_id})
     # Read again under the locks: the user may have joined a team, the team been dissolved
     # (which deletes its invitations) or the invitation revoked meanwhile.
-    if (current := locks.team_id_of(db, user_id=user.id)) is not None:
+    if (current := team_id_of(db, user_id=user.id)) is not None:
         raise Conflict(_in_team(db, current))
     invitation = _invitation_for(db, user=user, invitation_id=invitation_id)
     team = _locked(db, invitation.team)
@@ -276,7 +276,7 @@ def leave(db: DB, *, user: User) -> Team | None:
     (they were its last member)."""
     held: set[int] = {user.id}
     while True:
-        team_id = locks.team_id_of(db, user_id=user.id)
+        team_id = team_id_of(db, user_id=user.id)
         if team_id is None:
             raise Conflict("you are not in a team")
         if locks.member_count(db, team_id=team_id) <= 1:

@@ -13,14 +13,13 @@ from typing import Any
 import pytest
 from sqlalchemy.orm import Session
 
-from server.accounts.service import team_of
 from server.leaderboard import ties
 from server.leaderboard.pages import sort_value
 from server.leaderboard.schemas import LeaderboardRowOut
 from server.leaderboard.service import board_version
 from server.leaderboard.snapshot import Snapshot, Snapshots, advance, read_whole
 from server.leaderboard.stored import csv_safe
-from server.models import Challenge, State, Submission, User
+from server.models import Challenge, State, Submission, User, team_of
 from server.standings.entries import refresh
 from server.submissions.reports import report_final, report_state
 from server.teams import service as teams
@@ -55,11 +54,11 @@ def _flip(db: Session, rng: random.Random, what: str) -> None:
 def _team_change(db: Session, rng: random.Random, users: list[User]) -> None:
     """A random user leaves their team (maybe dissolving it), or forms one with another."""
     user = rng.choice(users)
-    if team_of(db, user=user) is not None:
+    if team_of(db, user_id=user.id) is not None:
         teams.leave(db, user=user)
         return
     other = rng.choice([u for u in users if u is not user])
-    if team_of(db, user=other) is not None:
+    if team_of(db, user_id=other.id) is not None:
         return
     n = rng.randrange(10**6)
     team = teams.create_team(db, user=user, name=f"team-{n}", display_name=f"Team {n}")

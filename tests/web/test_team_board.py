@@ -11,9 +11,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
 from manieval.render import leaderboard_table, stdout
-from server.accounts.service import team_of
 from server.challenges.service import set_team_mode
-from server.models import Challenge, State, Submission, User
+from server.models import Challenge, State, Submission, User, team_of
 from server.submissions.reports import report_final, report_state
 from server.teams import service as teams
 from testkit.factories import make_challenge, make_user, queue_submission, result_doc
@@ -36,7 +35,7 @@ def _done(
 
 
 def _join(db: Session, admin: User, member: User) -> None:
-    team = team_of(db, user=admin)
+    team = team_of(db, user_id=admin.id)
     if team is None:
         team = teams.create_team(db, user=admin, name="grasp-lab", display_name="Grasp Lab")
     invitation = teams.invite(db, admin=admin, team=team, username=member.username)
