@@ -157,20 +157,21 @@ def installed_versions() -> Versions:
 @functools.cache
 def git_commit() -> str | None:
     """The commit checked out where the code runs from, or None (not a checkout, no git)."""
-    if not (ROOT / ".git").exists() or shutil.which("git") is None:
+    if not (ROOT / ".git").exists():
+        return None
+    commit = (_output(["git", "-C", str(ROOT), "rev-parse", "HEAD"]) or "").strip()
+    return commit if re.fullmatch(r"[0-9a-f]{40,64}", commit) else None
+
+
+def _output(command: list[str]) -> str | None:
+    """What `command` prints, or None when it is not installed or fails (within 10 s)."""
+    if shutil.which(command[0]) is None:
         return None
     try:
-        done = subprocess.run(
-            ["git", "-C", str(ROOT), "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        )
+        done = subprocess.run(command, capture_output=True, text=True, timeout=10, check=True)
     except (OSError, subprocess.SubprocessError):
         return None
-    commit = done.stdout.strip()
-    return commit if re.fullmatch(r"[0-9a-f]{40,64}", commit) else None
+    return done.stdout
 
 
 def evaluator_build() -> EvaluatorBuild:
@@ -207,19 +208,8 @@ def gpu_names() -> str | None:
     """The NVIDIA GPUs this process sees, as nvidia-smi names them ("2 x NVIDIA H100 ..."),
     or None without nvidia-smi or GPUs. Never CUDA itself: initialising it here would break
     the simulator processes forked after."""
-    if shutil.which("nvidia-smi") is None:
-        return None
-    try:
-        done = subprocess.run(
-            ["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    names = [line.strip() for line in done.stdout.splitlines() if line.strip()]
+    listed = _output(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"]) or ""
+    names = [line.strip() for line in listed.splitlines() if line.strip()]
     counted = {name: names.count(name) for name in names}
     described = [name if n == 1 else f"{n} x {name}" for name, n in counted.items()]
     return ", ".join(described) or None
