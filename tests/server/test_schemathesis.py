@@ -255,6 +255,11 @@ def world(request: pytest.FixtureRequest) -> World:
     return _build(url, data_dir)
 
 
+CALL_TIMEOUT_S = 300
+"""How long one call may take before it counts as hung: schemathesis's default (10 s) is a
+guess about an idle machine, and a busy one took longer to answer GET /team on Postgres."""
+
+
 @pytest.fixture(scope="module")
 def api_schema(world: World) -> Any:
     return schemathesis.openapi.from_asgi("/openapi.json", world.app)
@@ -279,7 +284,7 @@ def test_api_operation_by_operation(
         @given(case=operation.as_strategy(generation_mode=mode))
         @settings(max_examples=examples, deadline=None, suppress_health_check=list(HealthCheck))
         def check(case: schemathesis.Case) -> None:
-            response = case.call(headers=headers)
+            response = case.call(headers=headers, timeout=CALL_TIMEOUT_S)
             case.validate_response(response, checks=CHECKS if mode.is_positive else NEGATIVE)
             if caller != "alice":
                 _no_leak(response, case)
@@ -300,7 +305,7 @@ def _run_stateful(
             world.restore()  # each scenario starts from the same server
 
         def get_call_kwargs(self, case: schemathesis.Case) -> dict[str, Any]:
-            return {"headers": headers}
+            return {"headers": headers, "timeout": CALL_TIMEOUT_S}
 
         def validate_response(self, response: Any, case: schemathesis.Case, **_: Any) -> None:
             case.validate_response(response, checks=CHECKS)
