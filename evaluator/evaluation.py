@@ -30,6 +30,7 @@ from evaluator.runner import (
     run_shard,
 )
 from evaluator.sources import PolicySource
+from evaluator.trajectory import merge_parts
 
 
 def evaluate(
@@ -39,6 +40,7 @@ def evaluate(
     workers: int = 1,
     warm: bool = False,
     video_dir: Path | None = None,
+    trajectory_dir: Path | None = None,
     on_episode: EpisodeCallback | None = None,
     should_stop: Callable[[], bool] = lambda: False,
     on_output: OutputCallback | None = None,
@@ -55,9 +57,12 @@ def evaluate(
 
     `on_output`, if given, gets the policy processes' own output as it comes, by shard (when
     their launcher can pass it on: local processes and containers).
+
+    With `trajectory_dir`, every episode that ran is kept there in ManiSkill's trajectory
+    format, one `<condition>--<Task>.h5` + `.json` per task run (`evaluator.trajectory`).
     """
     started = datetime.now(UTC)
-    options = RunOptions(video_dir=video_dir)
+    options = RunOptions(video_dir=video_dir, trajectory_dir=trajectory_dir)
     callback = on_episode or (lambda _run, _episode: None)
     if not can_start_processes():
         workers, warm = 1, False
@@ -78,6 +83,8 @@ def evaluate(
         outcomes = run_warm(
             workers, plan, source, shards, options, callback, should_stop, on_output
         )
+    if trajectory_dir is not None:
+        merge_parts(plan, trajectory_dir)
     provenance = local_provenance(plan, policy_image=source.pinned_image())
     return build_result(plan, source.describe(), outcomes, started=started, provenance=provenance)
 

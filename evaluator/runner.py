@@ -28,6 +28,7 @@ from evaluator.sim import (
 )
 from evaluator.sources import EchoingProcess, OutputSink, PolicySource, limit_reached
 from evaluator.suite import NO_CHUNKS, ActionChunks
+from evaluator.trajectory import TrajectoryRecorder
 from evaluator.video import write_video
 
 EpisodeCallback = Callable[[int, EpisodeResult], None]
@@ -60,11 +61,12 @@ class ShardOutcome:
 
 @dataclass(frozen=True)
 class RunOptions:
-    """How to run: where videos go, and where the endpoint's socket is made (a fresh private
-    directory unless a shared volume is named)."""
+    """How to run: where videos and trajectories go (none: not recorded), and where the
+    endpoint's socket is made (a fresh private directory unless a shared volume is named)."""
 
     video_dir: Path | None = None
     socket_dir: Path | None = None
+    trajectory_dir: Path | None = None
 
 
 def make_shards(plan: EvaluationPlan, workers: int) -> list[Shard]:
@@ -111,17 +113,28 @@ class TaskEnv:
     env: Any
     runtime: ConditionRuntime
     record: bool
+    recorder: TrajectoryRecorder | None = None
+
+    def close(self) -> None:
+        """Close the environment, then finish its trajectory file if it is recorded."""
+        self.env.close()
+        if self.recorder is not None:
+            self.recorder.close()
 
 
 def open_task(
     plan: EvaluationPlan, run_index: int, episodes: Sequence[tuple[int, int]], options: RunOptions
 ) -> TaskEnv:
-    """Build the environment for these episodes of a task run (rendering if one is filmed)."""
+    """Build the environment for these episodes of a task run (rendering if one is filmed,
+    wrapped in ManiSkill's recorder if trajectories are kept)."""
     run = plan.runs[run_index]
     runtime = ConditionRuntime(run.condition, keys=ObservationKeys(run.observation_keys))
     record = options.video_dir is not None and any(plan.records(run, i) for i, _ in episodes)
     env = make_env(run, runtime, render=record, frame_size=plan.video_size)
-    return TaskEnv(env, runtime, record)
+    if options.trajectory_dir is None:
+        return TaskEnv(env, runtime, record)
+    recorder = TrajectoryRecorder(options.trajectory_dir, run=run, first_episode=episodes[0][0])
+    return TaskEnv(recorder.wrap(env), runtime, record, recorder)
 
 
 def run_units(
@@ -148,36 +161,33 @@ def run_units(
                 plan,
                 run_index,
                 plan.runs[run_index],
-                task.env,
-                task.runtime,
+                task,
                 channel,
                 episodes,
                 outcome,
                 options=options,
-                record=task.record,
                 on_episode=on_episode,
                 should_stop=should_stop,
             )
         finally:
             if task is not None:
-                task.env.close()
+                task.close()
 
 
 def _run_task(
     plan: EvaluationPlan,
     run_index: int,
     run: TaskRun,
-    env: Any,
-    runtime: ConditionRuntime,
+    task: TaskEnv,
     channel: PolicyChannel,
     episodes: Sequence[tuple[int, int]],
     outcome: ShardOutcome,
     *,
     options: RunOptions,
-    record: bool,
     on_episode: EpisodeCallback,
     should_stop: Callable[[], bool],
 ) -> None:
+    env, runtime, record = task.env, task.runtime, task.record
     step_limit = runtime.step_limit(run.max_episode_steps, default_control_freq(env))
     bounds = action_bounds(env)
     stride = plan.frame_stride(control_freq(env))
@@ -211,6 +221,8 @@ def _run_task(
                     frame_every=stride,
                     should_stop=should_stop,
                 )
+                if task.recorder is not None:
+                    task.recorder.episode_done(index)
                 if frames and options.video_dir is not None:
                     fps = control_freq(env) / stride
                     outcome.videos.append(
@@ -219,6 +231,8 @@ def _run_task(
             outcome.episodes.append((run_index, result))
             on_episode(run_index, result)
     except PolicyFailure as failure:
+        if failure.episode is not None and task.recorder is not None:
+            task.recorder.episode_done(index)  # the steps it took before it broke
         result = failure.episode or failed_episode(
             index, seed, failure.kind, failure.reason, at_end_measured=plan.ignore_terminations
         )
@@ -304,7 +318,7 @@ def run_shard(
         pass  # cancelled: the episode in progress, and those after it, are recorded not_run
     finally:
         if first is not None:
-            first.env.close()
+            first.close()
         outcome.policy_time_s = endpoint.policy_time_s
         code = process.exit_code()  # before stop(): our own SIGTERM is not the policy's exit
         endpoint.close()

@@ -135,6 +135,7 @@ for command in (
     push.push,
     participant.status,
     participant.logs,
+    participant.trajectories,
     participant.cancel,
     participant.leaderboard,
     compare.compare,

@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from datetime import datetime
+from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote, urlsplit
@@ -30,6 +31,7 @@ call would fail with "connection reset by peer", a race a slow poll meets)."""
 # Submitting resolves the image through its registry (several requests, each with its own
 # server-side timeout): give it longer than a plain read.
 SUBMIT_READ_S = 120.0
+DOWNLOAD_READ_S = 120.0  # a trajectory file: up to MANIEVAL_MAX_TRAJECTORY_BYTES
 EPISODES_PAGE = 1000  # the most the episodes endpoint gives per page
 
 JSON = dict[str, Any]
@@ -327,6 +329,22 @@ class Client:
     def logs(self, submission_id: int) -> JSON:
         result: JSON = self.call("GET", f"/submissions/{submission_id}/logs")
         return result
+
+    def trajectories(self, submission_id: int) -> JSON:
+        """The current attempt's trajectory files, one `.h5` + `.json` pair per task run."""
+        result: JSON = self.call("GET", f"/submissions/{submission_id}/trajectories")
+        return result
+
+    def download(self, url: str, target: Path) -> int:
+        """Write the file at `url` (a path the API gave, under /api/v1) to `target`, whole or
+        not at all; its size in bytes."""
+        if not url.startswith(API + "/"):
+            raise ValueError(f"{url!r} is not a path of the API")
+        data = self.request("GET", url.removeprefix(API), read_s=DOWNLOAD_READ_S).content
+        partial = target.with_name(target.name + ".part")
+        partial.write_bytes(data)
+        partial.replace(target)
+        return len(data)
 
     def cancel(self, submission_id: int) -> JSON:
         result: JSON = self.call("POST", f"/submissions/{submission_id}/cancel")

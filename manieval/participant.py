@@ -1,11 +1,13 @@
 """The participant commands that take part in challenges: challenges, leaderboard, submit,
-status, logs and cancel. Like the account commands (manieval/account.py) they speak to the
-server's public API only; docs/cli.md describes them with their exit codes."""
+status, logs, trajectories and cancel. Like the account commands (manieval/account.py) they
+speak to the server's public API only; docs/cli.md describes them with their exit codes."""
 
 from __future__ import annotations
 
 import enum
+import re
 import sys
+from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
 import typer
@@ -14,9 +16,10 @@ from rich.text import Text
 from manieval import render
 from manieval.client import Client, MethodInfo
 from manieval.connect import JsonOption, ServerOption, connect, print_json
-from manieval.errors import STATE_CODES, ExitCode, handled, server_flag
+from manieval.errors import STATE_CODES, ExitCode, fail, handled, server_flag
 from manieval.follow import FINAL_STATES, follow
 
+FILE_NAME = re.compile(r"[A-Za-z0-9_\-]+\.(h5|json)")
 SubmissionId = Annotated[int, typer.Argument(min=1, help="The submission's number.")]
 MethodOption = Annotated[
     str | None, typer.Option("--method", help="Your method's name, shown on the leaderboard.")
@@ -231,6 +234,32 @@ def empty_log_message(submission_id: int, attempt: int, state: str) -> str:
     if state == "queued":
         return f"{which} has not started yet: no log"
     return f"no log for {which} yet: its policy has written nothing so far"
+
+
+def trajectories(
+    submission_id: SubmissionId,
+    output: Annotated[
+        Path, typer.Option("-o", "--output", help="The directory to write them to.")
+    ] = Path("."),
+    server: ServerOption = None,
+) -> None:
+    """Download a submission's trajectories in ManiSkill's format (.h5 + .json per task run)."""
+    err = render.stderr()
+    with handled(), connect(server, login="optional") as client:
+        found = client.trajectories(submission_id)
+        try:
+            output.mkdir(parents=True, exist_ok=True)
+            for t in found["trajectories"]:
+                for url in (t["h5_url"], t["json_url"]):
+                    name = url.rsplit("/", 1)[-1]
+                    if not FILE_NAME.fullmatch(name):  # never a path the server chose
+                        fail(ExitCode.SERVER_ERROR, f"the server named a file {name!r}")
+                    size = client.download(url, output / name)
+                    err.print(f"{output / name}: {size} bytes")
+        except OSError as exc:
+            fail(ExitCode.USAGE, f"cannot write to {output}: {exc}")
+    replay = "python -m mani_skill.trajectory.replay_trajectory --traj-path"
+    err.print(f"replay one: {replay} {output}/FILE.h5")
 
 
 def cancel(submission_id: SubmissionId, server: ServerOption = None) -> None:

@@ -37,6 +37,7 @@ from server.services import Services
 from server.submissions import api as submissions_api
 from server.submissions import events, internal, submit_pages
 from server.submissions import pages as submissions_pages
+from server.submissions import trajectories as submissions_trajectories
 from server.submissions import videos as submissions_videos
 from server.submissions.changes import ChangeFeed
 from server.submissions.images import image_resolver
@@ -129,6 +130,7 @@ def create_app(
         leaderboard_api,
         submissions_api,
         submissions_videos,
+        submissions_trajectories,
         internal,
     ):
         app.include_router(api.router)

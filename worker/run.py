@@ -24,7 +24,7 @@ from internal_api.schemas import Assignment, State
 from worker.outcome import conclusion, ended
 from worker.server_api import ServerAPI, ServerUnavailable
 from worker.settings import WorkerSettings
-from worker.videos import recording_dir, upload_videos
+from worker.videos import recording_dir, upload_trajectories, upload_videos
 
 log = logging.getLogger(__name__)
 
@@ -182,20 +182,31 @@ def _evaluate_recording(
     plan: EvaluationPlan,
     source: PolicySource,
 ) -> EvaluationResult | Ended | None:
-    """`_evaluate`, with the plan's episode videos recorded and stored on the server before
-    the final report (the page shows them as soon as the result is there)."""
+    """`_evaluate`, with the plan's episode videos and every episode's trajectory recorded
+    and stored on the server before the final report (the page shows them as soon as the
+    result is there)."""
     processes = settings.evaluation_processes
-    if plan.videos == 0:
-        return _evaluate(api, sid, attempt, plan, source, processes=processes)
     with recording_dir(settings, submission_id=sid, attempt=attempt) as directory:
+        trajectories = directory / "trajectories"
         result = _evaluate(
-            api, sid, attempt, plan, source, processes=processes, video_dir=directory
+            api,
+            sid,
+            attempt,
+            plan,
+            source,
+            processes=processes,
+            video_dir=directory if plan.videos else None,
+            trajectory_dir=trajectories,
         )
         if not isinstance(result, EvaluationResult):
-            return result  # the videos of an attempt that ended are not kept
-        return upload_videos(
+            return result  # the recordings of an attempt that ended are not kept
+        result = upload_videos(
             api, submission_id=sid, attempt=attempt, result=result, directory=directory
         )
+        upload_trajectories(
+            api, submission_id=sid, attempt=attempt, result=result, directory=trajectories
+        )
+        return result
 
 
 def _evaluate(
@@ -207,6 +218,7 @@ def _evaluate(
     *,
     processes: int,
     video_dir: Path | None = None,
+    trajectory_dir: Path | None = None,
 ) -> EvaluationResult | Ended | None:
     """The result, or the state the attempt was ended in elsewhere while it ran, or None when
     the worker's stop interrupted it. With `processes`, the simulator runs in that many warm
@@ -271,6 +283,7 @@ def _evaluate(
             workers=max(processes, 1),
             warm=processes > 0,
             video_dir=video_dir,
+            trajectory_dir=trajectory_dir,
             on_episode=report,
             should_stop=should_stop,
         )

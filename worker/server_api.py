@@ -257,6 +257,15 @@ class ServerAPI:
         response = self._send("PUT", url, None, patience=VIDEO_PATIENCE_S, content=content)
         return response.status_code not in (404, 409)
 
+    def upload_trajectory(self, submission_id: int, attempt: int, path: Path) -> bool:
+        """Store one trajectory file (a task run's `.h5` or `.json`) of a running attempt on
+        the server; False when the attempt is no longer current or running."""
+        url = f"{_attempt(submission_id, attempt)}/trajectories/{path.name}"
+        media = "application/x-hdf5" if path.suffix == ".h5" else "application/json"
+        content = (path.read_bytes(), media)
+        response = self._send("PUT", url, None, patience=VIDEO_PATIENCE_S, content=content)
+        return response.status_code not in (404, 409)
+
     # Reconciling -----------------------------------------------------------------------------
 
     def silent(self) -> list[AttemptRef]:

@@ -1,5 +1,6 @@
-"""Episode videos of an attempt: recorded by the evaluator into a directory the worker owns,
-then uploaded to the server through ``/internal/v1`` (docs/videos.md).
+"""Episode videos and trajectories of an attempt: recorded by the evaluator into a directory
+the worker owns, then uploaded to the server through ``/internal/v1`` (docs/videos.md,
+docs/trajectories.md).
 
 The directory is private to this worker (mode 0700, under its data directory) and never given to
 the policy: a `local:` policy runs in its own process with no word of it, a container gets no
@@ -17,6 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from evaluator.results import EvaluationResult
+from evaluator.trajectory import TRAJECTORY_NAME, trajectory_stem
 from evaluator.video import VIDEO_NAME, video_name
 from worker.server_api import ServerAPI, ServerUnavailable, WorkerRefused
 from worker.settings import WorkerSettings
@@ -61,3 +63,37 @@ def upload_videos(
             break
         sent.append(video.model_copy(update={"path": name}))
     return result.model_copy(update={"videos": sent})
+
+
+def upload_trajectories(
+    api: ServerAPI, *, submission_id: int, attempt: int, result: EvaluationResult, directory: Path
+) -> int:
+    """Send the trajectory files of the result's task runs (`.json` after its `.h5`, so that a
+    listed pair is whole); how many were sent. As with videos, the first that cannot be sent
+    is logged and it and the rest are left out."""
+    names = [
+        trajectory_stem(condition=condition.name, env_id=task.env_id) + suffix
+        for condition in result.conditions
+        for task in condition.tasks
+        for suffix in (".h5", ".json")
+    ]
+    sent = 0
+    for name in names:
+        path = directory / name
+        if not TRAJECTORY_NAME.match(name) or path.is_symlink() or not path.is_file():
+            continue
+        if api.stop.is_set():
+            break
+        try:
+            if not api.upload_trajectory(submission_id, attempt, path):
+                break
+        except (ServerUnavailable, WorkerRefused, RuntimeError, OSError) as exc:
+            log.warning(
+                "trajectories of submission %s not stored (from %s on): %s",
+                submission_id,
+                name,
+                exc,
+            )
+            break
+        sent += 1
+    return sent

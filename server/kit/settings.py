@@ -164,6 +164,9 @@ class Settings(BaseSettings):
     """Largest episode video a worker may upload (also bounded by `max_internal_body_bytes`)."""
     max_videos_per_attempt: int = Field(default=500, ge=0, le=100_000)
     """How many videos one attempt may store; uploads beyond it are refused (413)."""
+    max_trajectory_bytes: int = Field(default=64 * 1024**2, ge=64 * 1024, le=1024**3)
+    """Largest trajectory file (one task run's `.h5` or `.json`) a worker may upload (also
+    bounded by `max_internal_body_bytes`; docs/trajectories.md)."""
     login_failures_per_address: Annotated[str, BeforeValidator(Rate.checked)] = "30/hour"
     """Failed logins one client address may make, whatever account (docs/server.md)."""
     login_failures_per_account_address: Annotated[str, BeforeValidator(Rate.checked)] = "5/hour"

@@ -40,7 +40,12 @@ from server.submissions.reports import (
     report_progress,
     report_running,
 )
-from server.submissions.video_store import MEDIA_TYPE, NotAVideo
+from server.submissions.video_store import (
+    MEDIA_TYPE,
+    TRAJECTORY_MEDIA_TYPES,
+    NotATrajectory,
+    NotAVideo,
+)
 from server.submissions.videos import video_store
 from server.submissions.work import assignment, claim_next, end_restarted
 
@@ -157,6 +162,32 @@ def _store_video(
     with svc.sessions() as db:
         check_running(db, submission_id=submission_id, attempt=attempt)
     video_store(svc.settings).store(
+        submission_id=submission_id, attempt=attempt, name=name, data=data
+    )
+
+
+@router.put(f"{ATTEMPT}/trajectories/{{name}}", status_code=204)
+async def put_trajectory(
+    submission_id: Id, attempt: Id, name: VideoName, request: Request
+) -> Response:
+    """Store a task run's trajectory file of a running attempt (`.h5` as HDF5, `.json` as
+    JSON, named as the evaluator names them); 409 once the attempt has ended or been
+    replaced."""
+    media = request.headers.get("content-type", "").partition(";")[0].strip()
+    if media != TRAJECTORY_MEDIA_TYPES.get(name[name.rfind(".") :]):
+        raise NotATrajectory("send a trajectory's .h5 as application/x-hdf5, its .json as JSON")
+    data = await request.body()  # bounded by max_internal_body_bytes before it is read
+    await run_in_threadpool(_store_trajectory, request, submission_id, attempt, name, data)
+    return Response(status_code=204)
+
+
+def _store_trajectory(
+    request: Request, submission_id: int, attempt: int, name: str, data: bytes
+) -> None:
+    svc = services(request)
+    with svc.sessions() as db:
+        check_running(db, submission_id=submission_id, attempt=attempt)
+    video_store(svc.settings).store_trajectory(
         submission_id=submission_id, attempt=attempt, name=name, data=data
     )
 

@@ -36,6 +36,7 @@ from server.submissions.service import (
     task_rows,
     transitions_of,
 )
+from server.submissions.trajectories import may_download_trajectories, trajectories_of
 from server.submissions.video_store import VideoStore
 from server.submissions.videos import video_store, videos_of
 
@@ -95,6 +96,9 @@ def outcome(
         "episode_pages": max(1, -(-episode_total // EPISODES_PER_PAGE)),
         "show_seed": s.phase.public_seeds,
         "videos": videos_of(submission=s, store=store),
+        "trajectories": trajectories_of(submission=s, store=store)
+        if may_download_trajectories(s, who.user)
+        else [],
         "ended_badly": s.state in ENDED_BADLY,
         "final": s.state.final,
     }

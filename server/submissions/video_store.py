@@ -1,4 +1,6 @@
-"""Episode video files on the server: ``<video_dir>/<submission>/<attempt>/<name>.mp4``.
+"""Episode video files on the server: ``<video_dir>/<submission>/<attempt>/<name>.mp4``, and
+beside them the attempt's trajectories, ``.../<attempt>/trajectories/<condition>--<Task>.h5``
+(+ ``.json``, docs/trajectories.md).
 
 Workers upload them through ``/internal/v1`` (`store_video`); on Kubernetes the evaluation
 Jobs write them into the same layout on a shared volume. A file's name is the one the
@@ -10,16 +12,21 @@ video of an attempt removes those of its earlier attempts (a re-run replaces the
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import stat
 from dataclasses import dataclass
 from pathlib import Path
 
+from evaluator.trajectory import TRAJECTORY_NAME
 from evaluator.video import VIDEO_NAME
 from server.kit.errors import AppError, Invalid
 
 MEDIA_TYPE = "video/mp4"
+TRAJECTORIES = "trajectories"
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+TRAJECTORY_MEDIA_TYPES = {".h5": "application/x-hdf5", ".json": "application/json"}
 
 
 class VideoTooLarge(AppError):
@@ -32,6 +39,11 @@ class NotAVideo(AppError):
     code = "unsupported_media_type"
 
 
+class NotATrajectory(AppError):
+    status = 415
+    code = "unsupported_media_type"
+
+
 @dataclass(frozen=True)
 class VideoStore:
     """The video directory of one server, and what it accepts."""
@@ -39,6 +51,7 @@ class VideoStore:
     root: Path
     max_bytes: int
     max_per_attempt: int
+    max_trajectory_bytes: int = 64 * 1024**2
 
     def attempt_dir(self, *, submission_id: int, attempt: int) -> Path:
         """Where an attempt's videos are (both ids are integers: no name from input)."""
@@ -50,7 +63,17 @@ class VideoStore:
         planted there must not serve a file from elsewhere)."""
         if not VIDEO_NAME.fullmatch(name):
             return None
-        path = self.attempt_dir(submission_id=submission_id, attempt=attempt) / name
+        return self._regular(self.attempt_dir(submission_id=submission_id, attempt=attempt) / name)
+
+    def trajectory_path(self, *, submission_id: int, attempt: int, name: str) -> Path | None:
+        """The stored trajectory file of that name, or None (as `path` for videos)."""
+        if not TRAJECTORY_NAME.fullmatch(name):
+            return None
+        directory = self.attempt_dir(submission_id=submission_id, attempt=attempt) / TRAJECTORIES
+        return self._regular(directory / name)
+
+    def _regular(self, path: Path) -> Path | None:
+        """`path` if it is a regular file (not a link) inside the store, else None."""
         try:
             mode = path.lstat().st_mode
         except OSError:
@@ -75,12 +98,25 @@ class VideoStore:
         stored = [p for p in directory.iterdir() if p.name != name and p.suffix == ".mp4"]
         if not final.exists() and len(stored) >= self.max_per_attempt:
             raise VideoTooLarge(f"an attempt may store at most {self.max_per_attempt} videos")
-        tmp = directory / f"{name}.part"
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, final)
+        _write(directory, name, data)
+
+    def store_trajectory(self, *, submission_id: int, attempt: int, name: str, data: bytes) -> None:
+        """Keep one uploaded trajectory file (a task run's `.h5` or `.json`), replacing one of
+        the same name; Invalid, VideoTooLarge or NotATrajectory when the upload is not one."""
+        if not TRAJECTORY_NAME.fullmatch(name):
+            raise Invalid(f"{name!r} is not a trajectory name (condition--Task-vN.h5 or .json)")
+        if len(data) > self.max_trajectory_bytes:
+            raise VideoTooLarge(
+                f"the trajectory file has {len(data)} bytes, at most {self.max_trajectory_bytes}"
+            )
+        if name.endswith(".h5") and not data.startswith(HDF5_SIGNATURE):
+            raise NotATrajectory("the upload is not an HDF5 file")
+        if name.endswith(".json") and not _is_trajectory_json(data):
+            raise NotATrajectory("the upload is not a ManiSkill trajectory's JSON")
+        self._remove_other_attempts(submission_id=submission_id, attempt=attempt)
+        directory = self.attempt_dir(submission_id=submission_id, attempt=attempt) / TRAJECTORIES
+        directory.mkdir(parents=True, exist_ok=True)
+        _write(directory, name, data)
 
     def _remove_other_attempts(self, *, submission_id: int, attempt: int) -> None:
         parent = self.root / str(int(submission_id))
@@ -89,3 +125,22 @@ class VideoStore:
         for child in parent.iterdir():
             if child.name != str(attempt):
                 shutil.rmtree(child, ignore_errors=True)
+
+
+def _write(directory: Path, name: str, data: bytes) -> None:
+    """Write `directory/name` whole or not at all (readers never see half a file)."""
+    tmp = directory / f"{name}.part"
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, directory / name)
+
+
+def _is_trajectory_json(data: bytes) -> bool:
+    """Whether `data` is a JSON object with ManiSkill's `env_info` and `episodes`."""
+    try:
+        document = json.loads(data)
+    except ValueError:
+        return False
+    return isinstance(document, dict) and {"env_info", "episodes"} <= document.keys()

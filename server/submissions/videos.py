@@ -59,6 +59,7 @@ def video_store(settings: Settings) -> VideoStore:
         settings.resolved_video_dir,
         max_bytes=min(settings.max_video_bytes, settings.max_internal_body_bytes),
         max_per_attempt=settings.max_videos_per_attempt,
+        max_trajectory_bytes=min(settings.max_trajectory_bytes, settings.max_internal_body_bytes),
     )
 
 

@@ -139,7 +139,14 @@ def test_the_worker_records_the_first_episode_and_the_server_keeps_it_per_attemp
 
     stored = recorded.data_dir / "videos" / str(recorded.private_dev) / "1" / NAME
     assert stored.is_file()
-    assert list(stored.parent.iterdir()) == [stored]  # the first episode only, nothing partial
+    # The first episode only, nothing partial; beside it, every episode's trajectories
+    # (docs/trajectories.md), one task run's here.
+    trajectories = stored.parent / "trajectories"
+    assert sorted(stored.parent.iterdir()) == [stored, trajectories]
+    assert sorted(p.name for p in trajectories.iterdir()) == [
+        "nominal--PickCube-v1.h5",
+        "nominal--PickCube-v1.json",
+    ]
     with httpx.Client(base_url=recorded.url, timeout=60) as client:
         r = client.get(f"{API}/submissions/{recorded.private_dev}/videos", headers=recorded.owner)
         assert r.status_code == 200, r.text
