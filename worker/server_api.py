@@ -257,6 +257,14 @@ class ServerAPI:
         response = self._send("PUT", url, None, patience=VIDEO_PATIENCE_S, content=content)
         return response.status_code not in (404, 409)
 
+    def upload_poster(self, submission_id: int, attempt: int, video: Path, poster: Path) -> bool:
+        """Store the poster of an uploaded video; False when the attempt is no longer current
+        or running."""
+        url = f"{_attempt(submission_id, attempt)}/videos/{video.name}/poster"
+        content = (poster.read_bytes(), "image/jpeg")
+        response = self._send("PUT", url, None, patience=VIDEO_PATIENCE_S, content=content)
+        return response.status_code not in (404, 409)
+
     def upload_trajectory(self, submission_id: int, attempt: int, path: Path) -> bool:
         """Store one trajectory file (a task run's `.h5` or `.json`) of a running attempt on
         the server; False when the attempt is no longer current or running."""

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from evaluator.results import EvaluationResult
 from evaluator.trajectory import TRAJECTORY_NAME, trajectory_stem
-from evaluator.video import VIDEO_NAME, video_name
+from evaluator.video import VIDEO_NAME, poster_name, video_name
 from worker.server_api import ServerAPI, ServerUnavailable, WorkerRefused
 from worker.settings import WorkerSettings
 
@@ -53,9 +53,13 @@ def upload_videos(
             continue
         if api.stop.is_set():
             break
+        poster = directory / poster_name(name)
         try:
             if not api.upload_video(submission_id, attempt, path):
                 break  # the attempt is no longer current: neither are its videos
+            if poster.is_file() and not poster.is_symlink():
+                if not api.upload_poster(submission_id, attempt, path, poster):
+                    break
         except (ServerUnavailable, WorkerRefused, RuntimeError, OSError) as exc:
             log.warning(
                 "videos of submission %s not stored (from %s on): %s", submission_id, name, exc

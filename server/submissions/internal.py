@@ -42,6 +42,7 @@ from server.submissions.reports import (
 )
 from server.submissions.video_store import (
     MEDIA_TYPE,
+    POSTER_MEDIA_TYPE,
     TRAJECTORY_MEDIA_TYPES,
     NotATrajectory,
     NotAVideo,
@@ -162,6 +163,28 @@ def _store_video(
     with svc.sessions() as db:
         check_running(db, submission_id=submission_id, attempt=attempt)
     video_store(svc.settings).store(
+        submission_id=submission_id, attempt=attempt, name=name, data=data
+    )
+
+
+@router.put(f"{ATTEMPT}/videos/{{name}}/poster", status_code=204)
+async def put_poster(submission_id: Id, attempt: Id, name: VideoName, request: Request) -> Response:
+    """Store the poster (its first frame, JPEG) of a stored video of a running attempt; 409
+    once the attempt has ended or been replaced."""
+    if request.headers.get("content-type", "").partition(";")[0].strip() != POSTER_MEDIA_TYPE:
+        raise NotAVideo(f"send the poster as {POSTER_MEDIA_TYPE}")
+    data = await request.body()  # bounded by max_internal_body_bytes before it is read
+    await run_in_threadpool(_store_poster, request, submission_id, attempt, name, data)
+    return Response(status_code=204)
+
+
+def _store_poster(
+    request: Request, submission_id: int, attempt: int, name: str, data: bytes
+) -> None:
+    svc = services(request)
+    with svc.sessions() as db:
+        check_running(db, submission_id=submission_id, attempt=attempt)
+    video_store(svc.settings).store_poster(
         submission_id=submission_id, attempt=attempt, name=name, data=data
     )
 

@@ -1,12 +1,14 @@
 """Poster images of episode videos: the first frame (the scene after the reset) as a small JPEG,
 so that a `<video>` shows the scene before it is played (iOS Safari loads no frame until then).
 
-A poster is made when it is first asked for and kept beside its video (``<name>.poster.jpg``,
-with the video's modification time), not when a worker uploads the video: Kubernetes Jobs write
-videos straight into the video directory, past the upload. It is written to a temporary file
-and renamed, so concurrent first requests each leave a whole file. A video no poster can be
-made of (corrupt, truncated, not an MP4) leaves an empty file there, so that it is not decoded
-again and its page leaves the poster out. docs/videos.md.
+The evaluator writes each video's poster as it records it (``evaluator.video.write_poster``:
+``<name>.poster.jpg`` beside the video, with the video's modification time); a Kubernetes Job
+writes both straight into the video directory, and a worker uploads the poster after its video.
+A video without one (recorded before posters were, or its poster lost) gets one made when it is
+first asked for, where the server has ffmpeg, and kept the same way. It is written to a
+temporary file and renamed, so concurrent first requests each leave a whole file. A video no
+poster can be made of (corrupt, truncated, not an MP4) leaves an empty file there, so that it
+is not decoded again and its page leaves the poster out. docs/videos.md.
 
 Only videos `VideoStore.path` returned are decoded (regular files of a video's name inside the
 video directory), and only when they are no larger than the store accepts and start as an MP4
@@ -25,17 +27,17 @@ import tempfile
 import threading
 from pathlib import Path
 
+from evaluator.video import POSTER_MAX_BYTES, POSTER_MAX_SIDE, poster_name
+
 MEDIA_TYPE = "image/jpeg"
-MAX_SIDE = 512  # pixels: the page shows videos about 300 wide; a poster need not be larger
 DECODE_TIMEOUT_S = 10.0
-MAX_POSTER_BYTES = 1024 * 1024
 _decoding = threading.BoundedSemaphore(2)
 log = logging.getLogger(__name__)
 
 
 def poster_file(video: Path) -> Path:
     """Where a video's poster is kept: beside it."""
-    return video.with_name(video.name.removesuffix(".mp4") + ".poster.jpg")
+    return video.with_name(poster_name(video.name))
 
 
 def ffmpeg() -> str | None:
@@ -50,14 +52,19 @@ def ffmpeg() -> str | None:
         return None
 
 
-def known_to_fail(video: Path) -> bool:
-    """Whether an up-to-date attempt to make the video's poster failed (no decoding)."""
+def has_poster(video: Path) -> bool:
+    """Whether the video's poster is kept, or can be made here (ffmpeg, and no failed try)."""
     kept = _kept(video)
-    return kept is not None and kept.st_size == 0
+    if kept is not None:
+        return 0 < kept.st_size <= POSTER_MAX_BYTES
+    return ffmpeg() is not None
 
 
 def poster(*, video: Path, max_bytes: int) -> Path | None:
-    """The video's poster, made on first request and then kept; None when none can be made."""
+    """The video's poster: the one kept (the evaluator's, or one made earlier), else made now
+    and kept; None when none can be made."""
+    if (kept := _kept(video)) is not None:
+        return poster_file(video) if 0 < kept.st_size <= POSTER_MAX_BYTES else None
     if ffmpeg() is None:  # nothing to remember: the video may be fine
         return None
     if (kept := _kept(video)) is None:
@@ -89,7 +96,8 @@ def _kept(video: Path) -> os.stat_result | None:
 
 
 def _first_frame(video: Path, *, max_bytes: int) -> bytes:
-    """The video's first frame as JPEG, at most MAX_SIDE a side; empty when it cannot be read."""
+    """The video's first frame as JPEG, at most POSTER_MAX_SIDE a side; empty when it cannot
+    be read."""
     exe = ffmpeg()
     try:
         with video.open("rb") as f:
@@ -99,7 +107,8 @@ def _first_frame(video: Path, *, max_bytes: int) -> bytes:
         return b""
     if exe is None or size > max_bytes or head[4:8] != b"ftyp":
         return b""
-    scale = f"scale='min({MAX_SIDE},iw)':'min({MAX_SIDE},ih)':force_original_aspect_ratio=decrease"
+    side = POSTER_MAX_SIDE
+    scale = f"scale='min({side},iw)':'min({side},ih)':force_original_aspect_ratio=decrease"
     command = [
         exe, "-nostdin", "-hide_banner", "-loglevel", "error", "-threads", "1",
         "-protocol_whitelist", "file", "-f", "mp4", "-i", f"file:{video}",
@@ -112,7 +121,7 @@ def _first_frame(video: Path, *, max_bytes: int) -> bytes:
         log.warning("no poster for %s: %s", video, exc)
         return b""
     out = done.stdout
-    if done.returncode != 0 or not out.startswith(b"\xff\xd8") or len(out) > MAX_POSTER_BYTES:
+    if done.returncode != 0 or not out.startswith(b"\xff\xd8") or len(out) > POSTER_MAX_BYTES:
         log.warning("no poster for %s: %s", video, done.stderr[-500:].decode(errors="replace"))
         return b""
     return out

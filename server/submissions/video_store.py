@@ -20,10 +20,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from evaluator.trajectory import TRAJECTORY_NAME
-from evaluator.video import VIDEO_NAME
+from evaluator.video import POSTER_MAX_BYTES, VIDEO_NAME, poster_name
 from server.kit.errors import AppError, Invalid
 
 MEDIA_TYPE = "video/mp4"
+POSTER_MEDIA_TYPE = "image/jpeg"
 TRAJECTORIES = "trajectories"
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 TRAJECTORY_MEDIA_TYPES = {".h5": "application/x-hdf5", ".json": "application/json"}
@@ -99,6 +100,23 @@ class VideoStore:
         if not final.exists() and len(stored) >= self.max_per_attempt:
             raise VideoTooLarge(f"an attempt may store at most {self.max_per_attempt} videos")
         _write(directory, name, data)
+
+    def store_poster(self, *, submission_id: int, attempt: int, name: str, data: bytes) -> None:
+        """Keep the poster of the stored video `name`, carrying the video's modification time
+        (what makes it that video's: `posters`); Invalid (no such video: the video is sent
+        first), VideoTooLarge or NotAVideo when the upload is not a JPEG."""
+        if not VIDEO_NAME.fullmatch(name):
+            raise Invalid(f"{name!r} is not a video name (condition--Task-vN--epK.mp4)")
+        if len(data) > POSTER_MAX_BYTES:
+            raise VideoTooLarge(f"the poster has {len(data)} bytes, at most {POSTER_MAX_BYTES}")
+        if not data.startswith(b"\xff\xd8\xff"):  # a JPEG starts with SOI and a marker
+            raise NotAVideo("the upload is not a JPEG image")
+        video = self.path(submission_id=submission_id, attempt=attempt, name=name)
+        if video is None:
+            raise Invalid(f"no video {name} of this attempt is stored: send the video first")
+        _write(video.parent, poster_name(name), data)
+        made = video.stat()
+        os.utime(video.parent / poster_name(name), ns=(made.st_atime_ns, made.st_mtime_ns))
 
     def store_trajectory(self, *, submission_id: int, attempt: int, name: str, data: bytes) -> None:
         """Keep one uploaded trajectory file (a task run's `.h5` or `.json`), replacing one of

@@ -79,7 +79,6 @@ def videos_of(*, submission: Submission, store: VideoStore) -> list[VideoOut]:
         for e in task.episodes
     }
     show_seed = submission.phase.public_seeds
-    has_ffmpeg = posters.ffmpeg() is not None
     out = []
     for video in result.videos:
         episode = episodes.get((video.condition, video.env_id, video.episode))
@@ -102,7 +101,7 @@ def videos_of(*, submission: Submission, store: VideoStore) -> list[VideoOut]:
                 failure=episode.failure_reason,
                 url=f"/api/v1/submissions/{submission.id}/videos/{name}",
                 poster=f"/api/v1/submissions/{submission.id}/videos/{name}/poster"
-                if has_ffmpeg and not posters.known_to_fail(stored)
+                if posters.has_poster(stored)
                 else None,
             )
         )

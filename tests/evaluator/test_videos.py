@@ -25,7 +25,7 @@ from evaluator.plan import TaskRun, build_plan
 from evaluator.results import Video
 from evaluator.runner import RunOptions, ShardOutcome, make_shards, run_units
 from evaluator.suite import Condition, Nominal, Suite, SuiteError
-from evaluator.video import VIDEO_NAME, video_name, write_video
+from evaluator.video import POSTER_MAX_SIDE, VIDEO_NAME, poster_name, video_name, write_video
 from tests.evaluator.conftest import HERE, tiny_plan, tiny_suite
 
 SIDE = 16  # pixels: enough for an encoder, cheap on a loaded machine
@@ -313,7 +313,8 @@ def test_videos_are_h264_yuv420p_with_the_index_first_as_browsers_need(tmp_path:
     video = write_video(frames, tmp_path, run=run, episode=0, fps=20 / 3)  # 20 Hz, every 3rd
     path = Path(video.path)
     assert path.name == "nominal--PickCube-v1--ep0.mp4"
-    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no partial file left
+    left = sorted(p.name for p in tmp_path.iterdir())  # no partial file left
+    assert left == [path.name, poster_name(path.name)]
     data = path.read_bytes()
     assert data[4:8] == b"ftyp"
     assert 0 <= data.index(b"moov") < data.index(b"mdat")  # +faststart
@@ -327,6 +328,26 @@ def test_videos_are_h264_yuv420p_with_the_index_first_as_browsers_need(tmp_path:
     assert "yuv420p" in probe.stderr, probe.stderr
     assert "6.67 fps" in probe.stderr, probe.stderr  # real time, whatever the stride
     assert len(imageio.mimread(path)) == 18
+
+
+def test_the_evaluator_keeps_the_first_frame_beside_the_video_as_its_poster(tmp_path: Path):
+    """What a page shows before the video plays, made where the frames are: no server needs
+    a decoder for it. It carries the video's modification time, which makes it that video's."""
+    from PIL import Image
+
+    run = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"], episodes=1).runs[0]
+    first = np.zeros((768, 1024, 3), dtype=np.uint8)
+    first[..., 0] = 200  # red: the reset state
+    frames = [first, *(np.full((768, 1024, 3), 30, dtype=np.uint8) for _ in range(3))]
+    path = Path(write_video(frames, tmp_path, run=run, episode=0, fps=10).path)
+    poster = tmp_path / poster_name(path.name)
+    assert poster.name == "nominal--PickCube-v1--ep0.poster.jpg"
+    assert poster.stat().st_mtime_ns == path.stat().st_mtime_ns
+    with Image.open(poster) as image:
+        assert image.format == "JPEG"
+        assert image.size == (POSTER_MAX_SIDE, POSTER_MAX_SIDE * 768 // 1024)  # its shape kept
+        red, green, blue = image.convert("RGB").getpixel((10, 10))  # type: ignore[misc]
+    assert (red > 150, green < 60, blue < 60) == (True, True, True)  # the first frame
 
 
 def test_a_real_task_renders_frames_of_the_suites_size():

@@ -11,6 +11,7 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
+from evaluator.video import POSTER_MAX_BYTES, poster_name
 from internal_api.schemas import State
 from server.kit.errors import Invalid
 from server.kit.settings import Settings
@@ -176,3 +177,60 @@ def test_a_secret_seed_phase_records_no_video(db: Session):
         db.commit()
         plan = assignment(db, submission_id=made[phase], attempt=1, seed_secret=b"k" * 32).plan
         assert plan.videos == recorded, phase
+
+
+JPEG = b"\xff\xd8\xff\xe0" + b"\x00" * 100
+
+
+def test_a_videos_poster_is_kept_beside_it_with_its_time(
+    api: ServerAPI, running: int, small_settings: Settings, tmp_path: Path
+):
+    video, poster = tmp_path / NAME, tmp_path / poster_name(NAME)
+    video.write_bytes(MP4)
+    poster.write_bytes(JPEG)
+    assert api.upload_video(running, 1, video) is True
+    assert api.upload_poster(running, 1, video, poster) is True
+    assert stored(small_settings, running) == [NAME, poster_name(NAME)]
+    directory = small_settings.data_dir / "videos" / str(running) / "1"
+    assert (directory / poster_name(NAME)).read_bytes() == JPEG
+    made = (directory / NAME).stat().st_mtime_ns
+    assert (directory / poster_name(NAME)).stat().st_mtime_ns == made  # what makes it its poster
+
+
+@pytest.mark.parametrize(
+    ("video_first", "headers", "body", "status"),
+    [
+        (False, {}, JPEG, 422),  # no video to give it to
+        (True, {"Content-Type": "video/mp4"}, JPEG, 415),
+        (True, {}, b"<svg onload=alert(1)>", 415),
+        (True, {}, JPEG + b"\x00" * POSTER_MAX_BYTES, 413),
+    ],
+    ids=["before-its-video", "wrong-type", "not-a-jpeg", "too-large"],
+)
+def test_posters_that_are_not_a_bounded_jpeg_of_a_stored_video_are_refused(
+    http: TestClient,
+    running: int,
+    small_settings: Settings,
+    video_first: bool,
+    headers: dict[str, str],
+    body: bytes,
+    status: int,
+):
+    url = URL.format(sid=running, attempt=1, name=NAME)
+    if video_first:
+        assert http.put(url, content=MP4).status_code == 204
+    r = http.put(f"{url}/poster", content=body, headers={"Content-Type": "image/jpeg"} | headers)
+    assert r.status_code == status, r.text
+    assert poster_name(NAME) not in stored(small_settings, running)
+
+
+def test_posters_are_refused_once_the_attempt_ended(
+    api: ServerAPI, running: int, small_settings: Settings, tmp_path: Path
+):
+    video, poster = tmp_path / NAME, tmp_path / poster_name(NAME)
+    video.write_bytes(MP4)
+    poster.write_bytes(JPEG)
+    assert api.upload_video(running, 1, video) is True
+    assert api.final(running, 1, ended(State.ERROR, "ended")) == State.ERROR
+    assert api.upload_poster(running, 1, video, poster) is False
+    assert stored(small_settings, running) == [NAME]

@@ -16,7 +16,7 @@ from PIL import Image
 from sqlalchemy.orm import Session
 
 from evaluator.results import Video
-from evaluator.video import FFMPEG_OPTIONS
+from evaluator.video import FFMPEG_OPTIONS, POSTER_MAX_BYTES, write_poster
 from server.kit.settings import Settings
 from server.models import Challenge, Submission, User
 from server.submissions import posters
@@ -268,3 +268,43 @@ def test_without_ffmpeg_the_page_has_no_posters_and_the_video_still_plays(
     assert 'poster="' not in people["alice"].get(f"/submissions/{s.id}").text
     assert people["alice"].get(poster_url(s)).status_code == 404
     assert people["alice"].get(poster_url(s).removesuffix("/poster")).status_code == 200
+
+
+def test_the_poster_the_evaluator_kept_is_served_where_the_server_has_no_ffmpeg(
+    db: Session,
+    tiny: Challenge,
+    people: dict[str, TestClient],
+    settings: Settings,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A Kubernetes Job writes the video and its poster into the store; a control-plane image
+    has no decoder, and needs none."""
+    monkeypatch.setattr(posters, "ffmpeg", lambda: None)
+    s = alices(db, tiny)
+    video = encode(stored(settings, s))
+    kept = write_poster(np.full((64, 96, 3), FIRST, np.uint8), video)
+    assert f'poster="{poster_url(s)}"' in people["alice"].get(f"/submissions/{s.id}").text
+    r = people["alice"].get(poster_url(s))
+    assert r.status_code == 200
+    assert r.headers["content-type"] == posters.MEDIA_TYPE
+    assert r.content == kept.read_bytes()
+
+
+def test_a_kept_poster_of_another_video_or_too_large_is_not_served(
+    db: Session,
+    tiny: Challenge,
+    people: dict[str, TestClient],
+    settings: Settings,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(posters, "ffmpeg", lambda: None)
+    s = alices(db, tiny)
+    video = encode(stored(settings, s))
+    kept = write_poster(np.full((64, 96, 3), FIRST, np.uint8), video)
+    made = video.stat().st_mtime_ns
+    os.utime(kept, ns=(made, made - 10**9))  # an earlier video's poster of that name
+    assert people["alice"].get(poster_url(s)).status_code == 404
+    kept.write_bytes(b"\xff\xd8\xff" + b"\x00" * POSTER_MAX_BYTES)  # no poster weighs that
+    os.utime(kept, ns=(made, made))
+    assert 'poster="' not in people["alice"].get(f"/submissions/{s.id}").text
+    assert people["alice"].get(poster_url(s)).status_code == 404

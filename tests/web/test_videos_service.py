@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from evaluator.video import poster_name
 from manieval.service import Service
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
@@ -139,10 +140,12 @@ def test_the_worker_records_the_first_episode_and_the_server_keeps_it_per_attemp
 
     stored = recorded.data_dir / "videos" / str(recorded.private_dev) / "1" / NAME
     assert stored.is_file()
-    # The first episode only, nothing partial; beside it, every episode's trajectories
-    # (docs/trajectories.md), one task run's here.
+    # The first episode only, nothing partial, with the poster the evaluator made of it;
+    # beside it, every episode's trajectories (docs/trajectories.md), one task run's here.
     trajectories = stored.parent / "trajectories"
-    assert sorted(stored.parent.iterdir()) == [stored, trajectories]
+    poster = stored.with_name(poster_name(NAME))
+    assert sorted(stored.parent.iterdir()) == [stored, poster, trajectories]
+    assert poster.stat().st_mtime_ns == stored.stat().st_mtime_ns
     assert sorted(p.name for p in trajectories.iterdir()) == [
         "nominal--PickCube-v1.h5",
         "nominal--PickCube-v1.json",

@@ -121,4 +121,7 @@ def test_pods_write_their_shards_videos_to_the_volume_and_the_result_lists_them(
     assert [(v.condition, v.env_id, v.episode) for v in merged.videos] == [
         ("nominal", "PickCube-v1", 0)
     ]
-    assert [p.name for p in videos.iterdir()] == ["nominal--PickCube-v1--ep0.mp4"]
+    assert sorted(p.name for p in videos.iterdir()) == [  # the server serves the poster as is
+        "nominal--PickCube-v1--ep0.mp4",
+        "nominal--PickCube-v1--ep0.poster.jpg",
+    ]
