@@ -398,8 +398,9 @@ def test_the_evaluation_travels_in_a_secret_the_job_owns_and_takes_along(
     executor.start(spec)
     job = apiserver.jobs[(NAMESPACE, "eval-7-1")]
     secret = apiserver.secrets[(NAMESPACE, "eval-7-1-evaluation")]
+    owner = {"apiVersion": "batch/v1", "kind": "Job", "name": "eval-7-1"}
     assert secret["metadata"]["ownerReferences"] == [
-        {"apiVersion": "batch/v1", "kind": "Job", "name": "eval-7-1", "uid": job["metadata"]["uid"]}
+        owner | {"uid": job["metadata"]["uid"], "blockOwnerDeletion": True}
     ]
     document = base64.b64decode(secret["data"]["evaluation.json"]).decode()
     assert document == spec.evaluation.canonical_json()

@@ -71,16 +71,17 @@ def test_a_watch_from_a_lists_version_streams_every_change_then_ends_at_its_time
     version = listed["metadata"]["resourceVersion"]
     assert [j["metadata"]["resourceVersion"] for j in listed["items"]] == [version]
     apiserver.run(NAMESPACE, name)
-    apiserver.succeed(NAMESPACE, name, ["done"])
+    apiserver.succeed(NAMESPACE, name, ["done"])  # SuccessCriteriaMet (1.31)...
+    apiserver.settle(NAMESPACE, name)  # ...then Complete
     apiserver.jobs.pop((NAMESPACE, name))  # a direct edit is published too
     events = watch_lines(
         apiserver, f"{JOBS}?watch=true&{OURS}&resourceVersion={version}&timeoutSeconds=1"
     )
-    assert [e["type"] for e in events] == ["MODIFIED", "MODIFIED", "DELETED"]
+    assert [e["type"] for e in events] == ["MODIFIED", "MODIFIED", "MODIFIED", "DELETED"]
     versions = [int(e["object"]["metadata"]["resourceVersion"]) for e in events]
     assert versions == sorted(versions)
     assert versions[0] > int(version)
-    assert events[1]["object"]["status"]["conditions"][-1]["type"] == "Complete"
+    assert events[2]["object"]["status"]["conditions"][-1]["type"] == "Complete"
 
 
 def test_a_watch_without_a_version_starts_with_the_current_objects_of_its_selector(
@@ -238,6 +239,7 @@ def test_what_was_deleted_while_the_watch_had_expired_is_gone_after_the_new_list
     until(lambda: len(cluster.pods_of(name)) == 1, "its pod")
     with apiserver.together():  # the deletion's events are compacted away before delivery
         apiserver.exceed_deadline(NAMESPACE, name)
+        apiserver.settle(NAMESPACE, name)  # (1.31: its terminating pod goes)
         apiserver.jobs.pop((NAMESPACE, name))
         apiserver.expire_watches()
     until(lambda: cluster.job(name) is None and cluster.pods_of(name) == [], "an empty cache")
