@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import threading
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -258,3 +259,34 @@ def test_the_first_list_follows_its_pages(
         assert apiserver.counts()["list jobs"] == 3  # 2 + 2 + 1
     finally:
         watch.close()
+
+
+def test_watches_cut_at_once_are_opened_again_after_a_growing_delay_reset_by_one_that_lasted(
+    apiserver: ApiServerDouble,
+):
+    apiserver.watch_cut_after = 0.0  # a proxy in front of the server cuts every watch at once
+    delays: list[float] = []
+    resume = threading.Event()
+    cluster = ClusterWatch(executor_for(apiserver))
+
+    def pause(stop: threading.Event, seconds: float) -> bool:
+        delays.append(seconds)
+        if len(delays) == 3:
+            resume.wait(30)  # the test looks meanwhile
+        elif len(delays) == 5:
+            stop.wait()
+        return stop.is_set()
+
+    cluster.jobs.pause, cluster.jobs.jitter = pause, lambda: 0.5
+    cluster.start()
+    try:
+        until(lambda: len(delays) == 3, "three watches cut at once")
+        assert apiserver.counts()["watch jobs"] == 3  # each one waited for before the next
+        start_job(apiserver)  # the next watch brings the Job before it is cut: it lasted
+        resume.set()
+        until(lambda: len(delays) == 5, "two more watches cut at once")
+        assert delays == [0.4, 0.8, 1.6, 0.4, 0.8]  # doubling, jittered, counted again
+        assert apiserver.counts()["watch jobs"] == 6
+        assert cluster.job(make_spec().name) is not None
+    finally:
+        cluster.close()
