@@ -141,7 +141,8 @@ class ApiServerDouble:
     hold_deletions: bool = False
     """Foreground deletions leave the Job terminating until `finish_deletions`."""
     gc_paused: bool = False
-    """The garbage collector is behind: it deletes nothing until this is False again."""
+    """The garbage collector is behind: it makes no pass of its own (tests make them with
+    `collect_garbage`) and foreground deletions wait for it."""
     gc_every: float = 0.05
     """Seconds between the garbage collector's passes (`collect_garbage`)."""
     watch_cut_after: float | None = None
@@ -540,25 +541,23 @@ class ApiServerDouble:
 
     def collect_garbage(self) -> None:
         """One pass of the garbage collector (pkg/controller/garbagecollector/
-        garbagecollector.go), run every `gc_every` seconds unless `gc_paused`: a Secret whose
-        owning Job is gone is deleted (`attemptToDeleteItem`: its owners are absent), and a
-        foreground deletion held by `hold_deletions` is not finished here. So a dependent
-        lags its owner by a pass unless its ownerReference has `blockOwnerDeletion`, which a
-        foreground deletion of the owner waits for (`processDeletingDependentsItem`)."""
+        garbagecollector.go), made every `gc_every` seconds unless `gc_paused`: a Secret whose
+        owning Job was gone before the pass is deleted (`attemptToDeleteItem`: its owners are
+        absent), and foreground deletions end (not those `hold_deletions` holds). A dependent
+        thus lags its owner by a pass, unless its ownerReference has `blockOwnerDeletion`:
+        a foreground deletion deletes those before the owner (`processDeletingDependentsItem`)."""
         with self.lock:
-            if self.gc_paused:
-                return
+            owners = {job["metadata"]["uid"] for job in self.jobs.values()}
+            for key, secret in list(self.secrets.items()):
+                refs = secret["metadata"].get("ownerReferences") or []
+                if refs and not any(ref["uid"] in owners for ref in refs):
+                    del self.secrets[key]
             for key, job in list(self.jobs.items()):
                 finalizers = job["metadata"].get("finalizers") or []
                 if "foregroundDeletion" in finalizers and not self.hold_deletions:
                     self._finish_foreground(*key)
                     self._dirty.add(key)
             self._sync()
-            owners = {job["metadata"]["uid"] for job in self.jobs.values()}
-            for key, secret in list(self.secrets.items()):
-                refs = secret["metadata"].get("ownerReferences") or []
-                if refs and not any(ref["uid"] in owners for ref in refs):
-                    del self.secrets[key]
 
     def pods_of(self, namespace: str, name: str) -> list[Json]:
         with self.lock:
@@ -855,7 +854,8 @@ class ApiServerDouble:
     def _collect_forever(self) -> None:
         while not self._closed:
             time.sleep(self.gc_every)
-            self.collect_garbage()
+            if not self.gc_paused:
+                self.collect_garbage()
 
     def _quota_refused_pod(self, job: Json) -> None:
         meta = job["metadata"]

@@ -436,16 +436,15 @@ def test_a_job_made_again_after_its_deletion_never_adopts_its_predecessors_secre
     behind the garbage collector is, the old Job stays until its Secret is gone, so the Job
     made again meets no Secret to adopt and then lose under its pod."""
     executor = executor_for(apiserver)
-    apiserver.gc_paused = True  # the collector is behind
+    apiserver.gc_paused = True  # the collector is behind: the test makes its passes
     executor.start(make_spec())
     assert executor.cancel(7, 1)
     with pytest.raises(JobConflict, match="being deleted"):
-        executor.start(make_spec())  # the old Job waits for its Secret
-    apiserver.gc_paused = False
-    apiserver.collect_garbage()
+        executor.start(make_spec())  # the collector has not ended the deletion yet
+    apiserver.collect_garbage()  # it does: the Secret first, then the Job
     again = executor.start(make_spec())
     assert not again.adopted
-    apiserver.collect_garbage()  # a later pass: nothing of the new Job's goes
+    apiserver.collect_garbage()  # its next pass: what the old Job left is gone, not the new's
     secret = apiserver.secrets.get((NAMESPACE, "eval-7-1-evaluation"))
     assert secret is not None, "the new Job's Secret was collected with the old Job"
     assert secret["metadata"]["ownerReferences"][0]["uid"] == again.uid
@@ -467,7 +466,6 @@ def test_a_secret_a_background_deletion_left_is_waited_for_then_the_new_jobs_own
 
     def collector_catches_up(seconds: float) -> None:
         waits.append(seconds)
-        apiserver.gc_paused = False
         apiserver.collect_garbage()
 
     executor.sleep = collector_catches_up
