@@ -16,7 +16,12 @@ fail in ways the worker must tell apart from the policy's failures, the double f
 evicted pods are deleted (and replaced, as the Job's podFailurePolicy ignores disruptions),
 pods stay Pending with an Unschedulable condition, a ResourceQuota refuses Jobs (403 on create)
 or pods (the Job controller records a FailedCreate warning and makes no pod), and an expired
-list continuation answers `410 Gone`.
+list continuation answers `410 Gone`. An image pull fails and is retried as the kubelet does
+(`cannot_pull`, then `pulled`), a node's kubelet refuses pods at admission (`refuse`), logs go
+with their pods (`collect_pods`) or cannot be reached through the kubelet proxy
+(`lose_kubelet`), the garbage collector takes a deleted Job's Secret on a later pass unless it
+blocks the Job's foreground deletion (`collect_garbage`, `gc_paused`), and a proxy can cut
+watches (`watch_cut_after`).
 
 Jobs and pods can be watched as on a real server (`?watch=true`): newline-delimited events
 (ADDED, MODIFIED, DELETED, BOOKMARK when `allowWatchBookmarks`, ERROR), a resourceVersion per
