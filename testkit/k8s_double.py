@@ -16,7 +16,12 @@ fail in ways the worker must tell apart from the policy's failures, the double f
 evicted pods are deleted (and replaced, as the Job's podFailurePolicy ignores disruptions),
 pods stay Pending with an Unschedulable condition, a ResourceQuota refuses Jobs (403 on create)
 or pods (the Job controller records a FailedCreate warning and makes no pod), and an expired
-list continuation answers `410 Gone`.
+list continuation answers `410 Gone`. An image pull fails and is retried as the kubelet does
+(`cannot_pull`, then `pulled`), a node's kubelet refuses pods at admission (`refuse`), logs go
+with their pods (`collect_pods`) or cannot be reached through the kubelet proxy
+(`lose_kubelet`), the garbage collector takes a deleted Job's Secret on a later pass unless it
+blocks the Job's foreground deletion (`collect_garbage`, `gc_paused`), and a proxy can cut
+watches (`watch_cut_after`).
 
 Jobs and pods can be watched as on a real server (`?watch=true`): newline-delimited events
 (ADDED, MODIFIED, DELETED, BOOKMARK when `allowWatchBookmarks`, ERROR), a resourceVersion per
@@ -140,6 +145,14 @@ class ApiServerDouble:
     """Created Secrets; the garbage collector deletes those a deleted Job owned."""
     hold_deletions: bool = False
     """Foreground deletions leave the Job terminating until `finish_deletions`."""
+    gc_paused: bool = False
+    """The garbage collector is behind: it makes no pass of its own (tests make them with
+    `collect_garbage`) and foreground deletions wait for it."""
+    gc_every: float = 0.05
+    """Seconds between the garbage collector's passes (`collect_garbage`)."""
+    watch_cut_after: float | None = None
+    """A proxy in front of the server cuts every watch after this many seconds (0: at once,
+    once it has sent what it had ready), whatever its `timeoutSeconds`."""
     job_quota: int | None = None
     """A ResourceQuota's `count/jobs.batch`: creating a Job beyond it answers 403."""
     pod_quota: int | None = None
@@ -174,6 +187,8 @@ class ApiServerDouble:
     _published: dict[tuple[str, str, str], Json] = field(default_factory=dict)
     _last_scan: float = 0.0
     _closed: bool = False
+    _unreachable: set[tuple[str, str]] = field(default_factory=set)
+    """Pods (namespace, name) whose node the API server cannot reach through the kubelet."""
     _held: int = 0
     _dirty: set[tuple[str, str]] = field(default_factory=set)
     """Jobs (namespace, name) whose Job or pods a method changed: published at the next sync."""
@@ -191,6 +206,7 @@ class ApiServerDouble:
         self._thread = threading.Thread(
             target=self._server.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True
         )
+        self._collector = threading.Thread(target=self._collect_forever, daemon=True)
 
     @property
     def host(self) -> str:
@@ -198,6 +214,7 @@ class ApiServerDouble:
 
     def __enter__(self) -> ApiServerDouble:
         self._thread.start()
+        self._collector.start()
         return self
 
     def __exit__(self, *_exc: object) -> None:
@@ -397,25 +414,92 @@ class ApiServerDouble:
     def cannot_pull(
         self, namespace: str, name: str, container: str, *, reason: str = "ImagePullBackOff"
     ) -> None:
-        """The kubelet cannot pull `container`'s image: the pod stays Pending, waiting."""
+        """The kubelet's pull of `container`'s image failed; the pod stays Pending, the
+        container waiting. `EnsureImageExists` (pkg/kubelet/images/image_manager.go) says
+        ErrImagePull after a failed try, then ImagePullBackOff while its back-off runs (10 s
+        doubling to 300 s: `imageBackOff` in pkg/kubelet/kubelet.go) before the next try:
+        tests step through the tries (`reason`), and `pulled` is the try that succeeds."""
+        messages = {
+            "ErrImagePull": 'failed to pull and unpack image "{image}": failed to resolve '
+            'reference "{image}": unexpected status from HEAD request: 503 Service Unavailable',
+            "ImagePullBackOff": 'Back-off pulling image "{image}"',
+        }
         with self.lock:
             for pod in self._pods_of(namespace, name):
-                statuses = pod["status"].setdefault("initContainerStatuses", [])
-                statuses.append(
+                spec, status = pod["spec"], pod["status"]
+                sidecar = any(c["name"] == container for c in spec.get("initContainers", []))
+                kind = "initContainerStatuses" if sidecar else "containerStatuses"
+                image = next(
+                    c["image"]
+                    for c in spec["containers"] + spec.get("initContainers", [])
+                    if c["name"] == container
+                )
+                message = messages.get(reason, "{image}").format(image=image)
+                statuses = [s for s in status.get(kind, []) if s["name"] != container]
+                status[kind] = [
+                    *statuses,
                     {
                         "name": container,
-                        "image": "unpullable",
+                        "image": image,
                         "imageID": "",
                         "ready": False,
                         "restartCount": 0,
-                        "state": {
-                            "waiting": {
-                                "reason": reason,
-                                "message": 'Back-off pulling image "unpullable"',
-                            }
-                        },
-                    }
-                )
+                        "state": {"waiting": {"reason": reason, "message": message}},
+                    },
+                ]
+
+    @_publishes
+    def pulled(self, namespace: str, name: str) -> None:
+        """The kubelet's next try pulls the images: the Job's pods start (policy, evaluator)."""
+        with self.lock:
+            pods = self._pods_of(namespace, name)
+            for pod in pods:
+                self._start_containers(pod)
+            self.jobs[(namespace, name)]["status"].update(active=len(pods), ready=len(pods))
+
+    @_publishes
+    def refuse(
+        self,
+        namespace: str,
+        name: str,
+        *,
+        reason: str = "OutOfcpu",
+        message: str = "Node didn't have enough resource: cpu, requested: 4000, used: 6000, "
+        "capacity: 8000",
+        job_fails: bool = True,
+    ) -> None:
+        """The kubelet of the pods' node refuses them at admission (`Admit` in
+        pkg/kubelet/lifecycle/predicate.go: `OutOf<resource>` when its own count of the room
+        differs from the scheduler's, UnexpectedAdmissionError when a device plugin's
+        allocation fails): they fail at once, never having run, with no DisruptionTarget. No
+        podFailurePolicy rule matches a pod without an exit code, so with `job_fails` the
+        controller fails the Job on its backoffLimit of 0 (BackoffLimitExceeded)."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                pod["status"] = {"phase": "Failed", "reason": reason, "message": message}
+            job = self.jobs[(namespace, name)]
+            job["status"].update(active=0, ready=0, failed=1)
+            if job_fails:
+                limit = "Job has reached the specified backoff limit"
+                self._conclude(job, "FailureTarget", "Failed", "BackoffLimitExceeded", limit)
+
+    @_publishes
+    def lose_kubelet(self, namespace: str, name: str) -> None:
+        """The node of the Job's pods stops answering the API server: the pods stay listed as
+        they were, but their logs, read through the kubelet proxy, answer 500 (the API
+        server's error dialing the kubelet: `LogLocation` in pkg/registry/core/pod/strategy.go
+        and the proxy in staging/src/k8s.io/apiserver/pkg/registry/generic/rest/streamer.go)."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                self._unreachable.add((namespace, pod["metadata"]["name"]))
+
+    @_publishes
+    def collect_pods(self, namespace: str, name: str) -> None:
+        """The PodGC controller deletes the Job's pods, their node removed after a scale-down
+        (`gcOrphaned` in pkg/controller/podgc/gc_controller.go): their logs are gone (404)."""
+        with self.lock:
+            for pod in self._pods_of(namespace, name):
+                del self.pods[(namespace, pod["metadata"]["name"])]
 
     @_publishes
     def policy_killed(self, namespace: str, name: str, *, reason: str = "OOMKilled") -> None:
@@ -458,8 +542,27 @@ class ApiServerDouble:
         with self.lock:
             for key, job in list(self.jobs.items()):
                 if job["metadata"].get("deletionTimestamp"):
-                    del self.jobs[key]
-                    self._collect_garbage(job)
+                    self._finish_foreground(*key)
+
+    def collect_garbage(self) -> None:
+        """One pass of the garbage collector (pkg/controller/garbagecollector/
+        garbagecollector.go), made every `gc_every` seconds unless `gc_paused`: a Secret whose
+        owning Job was gone before the pass is deleted (`attemptToDeleteItem`: its owners are
+        absent), and foreground deletions end (not those `hold_deletions` holds). A dependent
+        thus lags its owner by a pass, unless its ownerReference has `blockOwnerDeletion`:
+        a foreground deletion deletes those before the owner (`processDeletingDependentsItem`)."""
+        with self.lock:
+            owners = {job["metadata"]["uid"] for job in self.jobs.values()}
+            for key, secret in list(self.secrets.items()):
+                refs = secret["metadata"].get("ownerReferences") or []
+                if refs and not any(ref["uid"] in owners for ref in refs):
+                    del self.secrets[key]
+            for key, job in list(self.jobs.items()):
+                finalizers = job["metadata"].get("finalizers") or []
+                if "foregroundDeletion" in finalizers and not self.hold_deletions:
+                    self._finish_foreground(*key)
+                    self._dirty.add(key)
+            self._sync()
 
     def pods_of(self, namespace: str, name: str) -> list[Json]:
         with self.lock:
@@ -543,7 +646,10 @@ class ApiServerDouble:
         selector = query.get("labelSelector", [""])[0]
         since = query.get("resourceVersion", [""])[0]
         bookmarks = query.get("allowWatchBookmarks", [""])[0] in _WATCHING
-        deadline = time.monotonic() + float(query.get("timeoutSeconds", ["1800"])[0])
+        lasts = float(query.get("timeoutSeconds", ["1800"])[0])
+        if self.watch_cut_after is not None:
+            lasts = min(lasts, self.watch_cut_after)
+        deadline = time.monotonic() + lasts
         kind, api_version = _KINDS[watch.store]
 
         def ours(event: Json) -> bool:
@@ -563,7 +669,7 @@ class ApiServerDouble:
             elif int(since) < self._compacted:
                 pending, last = [_gone(since)], -1
             else:
-                last = int(since)
+                pending, last = self._events_after(watch.store, int(since), generation, ours)
         next_bookmark = time.monotonic() + self.bookmark_every
         while True:
             for event in pending:
@@ -739,13 +845,22 @@ class ApiServerDouble:
         self.secrets[(namespace, name)] = secret
         return 201, secret
 
-    def _collect_garbage(self, job: Json) -> None:
-        """Delete the dependents of a deleted Job (its Secret) by their ownerReferences."""
+    def _finish_foreground(self, namespace: str, name: str) -> None:
+        """The garbage collector ends a foreground deletion: the dependents that block their
+        owner's deletion (`blockOwnerDeletion`) first, then the Job; the others are left for
+        its next pass, as orphans (`collect_garbage`)."""
+        job = self.jobs.pop((namespace, name))
         uid = job["metadata"]["uid"]
         for key, secret in list(self.secrets.items()):
-            owners = secret["metadata"].get("ownerReferences") or []
-            if any(o.get("uid") == uid for o in owners):
+            refs = secret["metadata"].get("ownerReferences") or []
+            if any(r.get("uid") == uid and r.get("blockOwnerDeletion") for r in refs):
                 del self.secrets[key]
+
+    def _collect_forever(self) -> None:
+        while not self._closed:
+            time.sleep(self.gc_every)
+            if not self.gc_paused:
+                self.collect_garbage()
 
     def _quota_refused_pod(self, job: Json) -> None:
         meta = job["metadata"]
@@ -813,11 +928,15 @@ class ApiServerDouble:
         if policy == "Foreground":
             job["metadata"].update(deletionTimestamp=self._now(), finalizers=["foregroundDeletion"])
             answer = copy.deepcopy(job)
-            if not self.hold_deletions:
-                del self.jobs[(namespace, name)]
-                self._collect_garbage(job)
+            if not self.hold_deletions and not self.gc_paused:
+                self._finish_foreground(namespace, name)  # the collector's pass, at once
             return 200, answer  # the object, still present: not a Status
-        del self.jobs[(namespace, name)]  # without a policy, batch/v1 orphans the dependents
+        del self.jobs[(namespace, name)]  # its dependents go on the collector's next pass...
+        if policy != "Background":  # ...but without a policy, batch/v1 orphans them
+            uid = job["metadata"]["uid"]
+            for secret in self.secrets.values():
+                refs = secret["metadata"].get("ownerReferences") or []
+                secret["metadata"]["ownerReferences"] = [r for r in refs if r["uid"] != uid]
         return 200, {"kind": "Status", "apiVersion": "v1", "status": "Success", "metadata": {}}
 
     def _log(self, namespace: str, name: str, query: dict[str, list[str]]) -> tuple[int, Any]:
@@ -832,6 +951,10 @@ class ApiServerDouble:
         if pod["status"]["phase"] == "Pending":
             message = f'container "{container}" in pod "{name}" is waiting to start'
             return _status(400, "BadRequest", message)
+        if (namespace, name) in self._unreachable:
+            url = f"https://10.0.3.7:10250/containerLogs/{namespace}/{name}/{container}"
+            message = f'Get "{url}": dial tcp 10.0.3.7:10250: connect: no route to host'
+            return _status(500, "InternalError", message)
         text = self.logs.get((namespace, name, container), "")
         tail = query.get("tailLines", [None])[0]
         if tail is not None:

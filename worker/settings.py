@@ -109,8 +109,10 @@ class WorkerSettings(BaseSettings):
     """Seconds between reads of a running evaluation's log for its progress (one API request
     per shard each); the result is read once, at the end."""
     k8s_pending_timeout_s: float = Field(default=600.0, gt=0)
-    """How long an evaluation's pods may stay unscheduled, pending or uncreated (a
-    ResourceQuota refusing them) before the attempt ends ``error``: the cluster's fault."""
+    """How long an evaluation's pods may stay unscheduled, pending, uncreated (a ResourceQuota
+    refusing them) or waiting for an image the kubelet retries pulling (its back-off reaches
+    300 s) before the attempt ends ``error``: the cluster's fault, but for the participant's
+    own policy image."""
 
     log_format: Literal["text", "json"] = "text"
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"

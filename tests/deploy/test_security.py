@@ -39,6 +39,7 @@ from worker.kubernetes.manifest import build_network_policy, job_labels
 
 WORKER_MAY = {
     ("batch", "jobs"): {"create", "get", "list", "watch", "delete"},
+    ("batch", "jobs/finalizers"): {"update"},  # the Secret's blockOwnerDeletion on its Job
     ("", "pods"): {"list", "watch"},  # followed by watches (worker/kubernetes/informer.py)
     ("", "pods/log"): {"get"},
     ("", "events"): {"list"},

@@ -5,7 +5,7 @@ from __future__ import annotations
 import base64
 import io
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 
 import pytest
@@ -32,6 +32,8 @@ from worker.kubernetes.client import (
     Backoff,
     JobConflict,
     KubernetesError,
+    KubernetesExecutor,
+    LogLost,
     StartedJob,
     kubernetes_executor,
 )
@@ -398,8 +400,9 @@ def test_the_evaluation_travels_in_a_secret_the_job_owns_and_takes_along(
     executor.start(spec)
     job = apiserver.jobs[(NAMESPACE, "eval-7-1")]
     secret = apiserver.secrets[(NAMESPACE, "eval-7-1-evaluation")]
+    owner = {"apiVersion": "batch/v1", "kind": "Job", "name": "eval-7-1"}
     assert secret["metadata"]["ownerReferences"] == [
-        {"apiVersion": "batch/v1", "kind": "Job", "name": "eval-7-1", "uid": job["metadata"]["uid"]}
+        owner | {"uid": job["metadata"]["uid"], "blockOwnerDeletion": True}
     ]
     document = base64.b64decode(secret["data"]["evaluation.json"]).decode()
     assert document == spec.evaluation.canonical_json()
@@ -424,3 +427,84 @@ def test_an_adopted_job_gets_its_secret_if_its_creator_died_before_making_it(
     assert secret["metadata"]["ownerReferences"][0]["uid"] == uid
     assert executor.start(make_spec()).adopted is True  # and again: the Secret exists (409)
     assert len(apiserver.secrets) == 1
+
+
+def test_a_job_made_again_after_its_deletion_never_adopts_its_predecessors_secret(
+    apiserver: ApiServerDouble,
+):
+    """The Secret blocks its Job's foreground deletion (blockOwnerDeletion): however far
+    behind the garbage collector is, the old Job stays until its Secret is gone, so the Job
+    made again meets no Secret to adopt and then lose under its pod."""
+    executor = executor_for(apiserver)
+    apiserver.gc_paused = True  # the collector is behind: the test makes its passes
+    executor.start(make_spec())
+    assert executor.cancel(7, 1)
+    with pytest.raises(JobConflict, match="being deleted"):
+        executor.start(make_spec())  # the collector has not ended the deletion yet
+    apiserver.collect_garbage()  # it does: the Secret first, then the Job
+    again = executor.start(make_spec())
+    assert not again.adopted
+    apiserver.collect_garbage()  # its next pass: what the old Job left is gone, not the new's
+    secret = apiserver.secrets.get((NAMESPACE, "eval-7-1-evaluation"))
+    assert secret is not None, "the new Job's Secret was collected with the old Job"
+    assert secret["metadata"]["ownerReferences"][0]["uid"] == again.uid
+
+
+def delete_in_background(executor: KubernetesExecutor, name: str) -> None:
+    """As `kubectl delete job` does: the Job goes at once, its dependents later."""
+    executor.batch.delete_namespaced_job(name, NAMESPACE, propagation_policy="Background")
+
+
+def test_a_secret_a_background_deletion_left_is_waited_for_then_the_new_jobs_own_is_made(
+    apiserver: ApiServerDouble,
+):
+    executor = executor_for(apiserver)
+    apiserver.gc_paused = True
+    executor.start(make_spec())
+    delete_in_background(executor, "eval-7-1")
+    waits: list[float] = []
+
+    def collector_catches_up(seconds: float) -> None:
+        waits.append(seconds)
+        apiserver.collect_garbage()
+
+    executor.sleep = collector_catches_up
+    again = executor.start(make_spec())
+    assert waits == [0.25]  # one back-off, then the stale Secret was gone
+    secret = apiserver.secrets[(NAMESPACE, "eval-7-1-evaluation")]
+    assert secret["metadata"]["ownerReferences"][0]["uid"] == again.uid
+
+
+def test_a_secret_a_background_deletion_left_for_too_long_is_an_error_not_adopted(
+    apiserver: ApiServerDouble,
+):
+    sleeps: list[float] = []
+    executor = executor_for(apiserver, sleeps=sleeps)
+    apiserver.gc_paused = True  # and stays behind
+    executor.start(make_spec())
+    delete_in_background(executor, "eval-7-1")
+    with pytest.raises(KubernetesError, match="of a deleted Job eval-7-1 is still there") as exc:
+        executor.start(make_spec())
+    assert exc.value.status == 409
+    assert not isinstance(exc.value, JobConflict)  # the worker charges the cluster, runs again
+    assert len(sleeps) == 5  # waited with back-off first
+
+
+@pytest.mark.parametrize(
+    ("lose", "said"),
+    [
+        (lambda api, name: api.collect_pods(NAMESPACE, name), "no pod of shard 0 is left"),
+        (lambda api, name: api.lose_kubelet(NAMESPACE, name), "500 Internal Server Error"),
+        (lambda api, name: api.fail_next("GET", "/log", 404), "404 Not Found"),
+    ],
+    ids=["pod-collected", "node-unreachable", "log-404"],
+)
+def test_a_result_log_lost_with_its_pod_or_node_is_told_apart(
+    apiserver: ApiServerDouble, lose: Callable[[ApiServerDouble, str], object], said: str
+):
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    apiserver.succeed(NAMESPACE, "eval-7-1", ["done"])
+    lose(apiserver, "eval-7-1")
+    with pytest.raises(LogLost, match=said):
+        executor.result_logs(7, 1, 1)

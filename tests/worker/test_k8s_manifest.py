@@ -456,6 +456,7 @@ def test_the_evaluation_secret_validates_strictly_and_is_owned_by_the_job(versio
             "kind": "Job",
             "name": "eval-7-1",
             "uid": "5b0e8c55-0000-4000-8000-000000000000",
+            "blockOwnerDeletion": True,  # the Job's foreground deletion waits for it
         }
     ]
     assert secret["immutable"] is True

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import threading
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -71,16 +72,17 @@ def test_a_watch_from_a_lists_version_streams_every_change_then_ends_at_its_time
     version = listed["metadata"]["resourceVersion"]
     assert [j["metadata"]["resourceVersion"] for j in listed["items"]] == [version]
     apiserver.run(NAMESPACE, name)
-    apiserver.succeed(NAMESPACE, name, ["done"])
+    apiserver.succeed(NAMESPACE, name, ["done"])  # SuccessCriteriaMet (1.31)...
+    apiserver.settle(NAMESPACE, name)  # ...then Complete
     apiserver.jobs.pop((NAMESPACE, name))  # a direct edit is published too
     events = watch_lines(
         apiserver, f"{JOBS}?watch=true&{OURS}&resourceVersion={version}&timeoutSeconds=1"
     )
-    assert [e["type"] for e in events] == ["MODIFIED", "MODIFIED", "DELETED"]
+    assert [e["type"] for e in events] == ["MODIFIED", "MODIFIED", "MODIFIED", "DELETED"]
     versions = [int(e["object"]["metadata"]["resourceVersion"]) for e in events]
     assert versions == sorted(versions)
     assert versions[0] > int(version)
-    assert events[1]["object"]["status"]["conditions"][-1]["type"] == "Complete"
+    assert events[2]["object"]["status"]["conditions"][-1]["type"] == "Complete"
 
 
 def test_a_watch_without_a_version_starts_with_the_current_objects_of_its_selector(
@@ -238,6 +240,7 @@ def test_what_was_deleted_while_the_watch_had_expired_is_gone_after_the_new_list
     until(lambda: len(cluster.pods_of(name)) == 1, "its pod")
     with apiserver.together():  # the deletion's events are compacted away before delivery
         apiserver.exceed_deadline(NAMESPACE, name)
+        apiserver.settle(NAMESPACE, name)  # (1.31: its terminating pod goes)
         apiserver.jobs.pop((NAMESPACE, name))
         apiserver.expire_watches()
     until(lambda: cluster.job(name) is None and cluster.pods_of(name) == [], "an empty cache")
@@ -256,3 +259,34 @@ def test_the_first_list_follows_its_pages(
         assert apiserver.counts()["list jobs"] == 3  # 2 + 2 + 1
     finally:
         watch.close()
+
+
+def test_watches_cut_at_once_are_opened_again_after_a_growing_delay_reset_by_one_that_lasted(
+    apiserver: ApiServerDouble,
+):
+    apiserver.watch_cut_after = 0.0  # a proxy in front of the server cuts every watch at once
+    delays: list[float] = []
+    resume = threading.Event()
+    cluster = ClusterWatch(executor_for(apiserver))
+
+    def pause(stop: threading.Event, seconds: float) -> bool:
+        delays.append(seconds)
+        if len(delays) == 3:
+            resume.wait(30)  # the test looks meanwhile
+        elif len(delays) == 5:
+            stop.wait()
+        return stop.is_set()
+
+    cluster.jobs.pause, cluster.jobs.jitter = pause, lambda: 0.5
+    cluster.start()
+    try:
+        until(lambda: len(delays) == 3, "three watches cut at once")
+        assert apiserver.counts()["watch jobs"] == 3  # each one waited for before the next
+        start_job(apiserver)  # the next watch brings the Job before it is cut: it lasted
+        resume.set()
+        until(lambda: len(delays) == 5, "two more watches cut at once")
+        assert delays == [0.4, 0.8, 1.6, 0.4, 0.8]  # doubling, jittered, counted again
+        assert apiserver.counts()["watch jobs"] == 6
+        assert cluster.job(make_spec().name) is not None
+    finally:
+        cluster.close()

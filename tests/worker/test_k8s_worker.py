@@ -363,11 +363,6 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
             "the evaluation's Job eval-",
         ),
         (
-            lambda api, name: api.cannot_pull(NAMESPACE, name, "policy"),
-            State.ERROR,
-            "the evaluation could not start: the policy container: ImagePullBackOff",
-        ),
-        (
             lambda api, name: api.succeed(NAMESPACE, name, ["no result here\n"]),
             State.ERROR,
             "the evaluation's result could not be read",
@@ -378,7 +373,6 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
         "deadline",
         "deadline-pods-gone-first",
         "job-vanished",
-        "image-pull",
         "unreadable",
     ],
 )
@@ -1107,3 +1101,130 @@ def test_a_restarted_worker_adopts_the_running_job_and_follows_it_to_its_end(
     second.join(timeout=60)
     assert outcome == [State.SUCCEEDED]
     assert [d for d in apiserver.deletions if d[0] == name] == [(name, "Foreground")]
+
+
+def test_an_image_pull_the_kubelet_retries_is_waited_for_until_it_succeeds(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    """A registry restarting (the one-replica registry in a rollout): the kubelet tries the
+    pull again after a back-off, and the evaluation runs once it succeeds."""
+    sid, name = queued.id, job_name(queued.id, 1)
+    run = start(api, wsettings, committed_sessions, apiserver, sid)
+    apiserver.run(NAMESPACE, name, ready=False)
+    for reason in ("ErrImagePull", "ImagePullBackOff", "ErrImagePull", "ImagePullBackOff"):
+        apiserver.cannot_pull(NAMESPACE, name, "policy", reason=reason)
+        looked_twice(apiserver, wsettings, committed_sessions, sid)
+        assert run.submission(sid).state == State.RUNNING, reason
+    apiserver.pulled(NAMESPACE, name)
+    apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, sid)])
+    assert run.wait() == State.SUCCEEDED
+
+
+def test_a_participants_image_that_never_pulls_is_an_error_after_the_pending_timeout(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    """Their pushed image, pinned by digest, that the kubelet cannot pull: `error` as the
+    docker executor's failed pull (no quota used), not run again (it would not pull then)."""
+
+    def kubelet(namespace: str, name: str) -> None:
+        apiserver.run(namespace, name, ready=False)
+        apiserver.cannot_pull(namespace, name, "policy")
+
+    apiserver.on_create = kubelet
+    patient = k8s_worker(settings, apiserver, k8s_pending_timeout_s=0.5)
+    assert Run(api, patient, committed_sessions).wait() == State.ERROR
+    end = attempt_end(committed_sessions, queued.id)
+    assert end.cause is None
+    prefix = "the evaluation could not start: the policy container: ImagePullBackOff: Back-off"
+    assert end.reason.startswith(prefix), end.reason
+    assert submission_of(committed_sessions, queued.id).attempt == 1
+
+
+def test_the_platforms_evaluator_image_that_never_pulls_is_the_clusters_doing(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    def kubelet(namespace: str, name: str) -> None:
+        apiserver.run(namespace, name, ready=False)
+        apiserver.cannot_pull(namespace, name, "evaluator", reason="ErrImagePull")
+
+    apiserver.on_create = kubelet
+    patient = k8s_worker(settings, apiserver, k8s_pending_timeout_s=0.5)
+    reason = assert_cluster_error(
+        committed_sessions, queued.id, Run(api, patient, committed_sessions).wait()
+    )
+    assert reason.startswith("the cluster stopped the evaluation: an image could not be pulled")
+    assert "the evaluator container: ErrImagePull: failed to pull and unpack image" in reason
+
+
+@pytest.mark.parametrize(
+    ("reason", "message", "job_fails"),
+    [
+        ("OutOfcpu", "Node didn't have enough resource: cpu", True),
+        ("OutOfmemory", "Node didn't have enough resource: memory", False),
+        (
+            "UnexpectedAdmissionError",
+            "Allocate failed due to no healthy devices present; cannot allocate unhealthy "
+            "devices nvidia.com/gpu, which is unexpected",
+            True,
+        ),
+    ],
+    ids=["out-of-cpu", "out-of-memory-job-not-yet-failed", "device-plugin"],
+)
+def test_a_pod_its_nodes_kubelet_refuses_is_the_clusters_doing(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+    reason: str,
+    message: str,
+    job_fails: bool,
+) -> None:
+    name = job_name(queued.id, 1)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
+    apiserver.run(NAMESPACE, name, ready=False)  # scheduled; the kubelet has not admitted it
+    apiserver.refuse(NAMESPACE, name, reason=reason, message=message, job_fails=job_fails)
+    said = assert_cluster_error(committed_sessions, queued.id, run.wait())
+    assert f"was refused by its node's kubelet ({reason}: {message}" in said, said
+
+
+@pytest.mark.parametrize(
+    "lose",
+    [
+        lambda api, name: api.collect_pods(NAMESPACE, name),
+        lambda api, name: api.lose_kubelet(NAMESPACE, name),
+        lambda api, name: api.fail_next("GET", "/log", 404),
+    ],
+    ids=["pod-collected", "node-unreachable", "log-404"],
+)
+def test_a_result_log_lost_with_its_pod_or_node_is_the_clusters_doing(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+    lose: Callable[[ApiServerDouble, str], object],
+) -> None:
+    quiet = k8s_worker(settings, apiserver, k8s_progress_interval=3600)  # no log read before
+    sid, name = queued.id, job_name(queued.id, 1)
+    run = start(api, quiet, committed_sessions, apiserver, sid)
+    apiserver.run(NAMESPACE, name)
+    looked_twice(apiserver, quiet, committed_sessions, sid)
+    with apiserver.together():  # the Job ends, and its pod or node goes before the worker looks
+        apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, sid)])
+        lose(apiserver, name)
+    reason = assert_cluster_error(committed_sessions, sid, run.wait())
+    assert reason.startswith("the evaluation's log was lost: "), reason

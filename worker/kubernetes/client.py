@@ -75,6 +75,11 @@ class JobConflict(KubernetesError):
     """A Job of that name exists but is not this attempt's, or it is being deleted."""
 
 
+class LogLost(KubernetesError):
+    """An evaluator's log cannot be read at the end: its pod is gone (garbage-collected with a
+    node removed) or its node does not answer the kubelet proxy. The cluster's doing."""
+
+
 @dataclass(frozen=True)
 class Backoff:
     """Capped exponential backoff with full jitter, for 429 and 5xx answers only."""
@@ -139,7 +144,7 @@ class KubernetesExecutor:
             if exc.status != 409:
                 raise
         else:
-            self._give_evaluation(spec, created)
+            self._give_evaluation(spec, created, fresh=True)
             return StartedJob(spec.name, adopted=False, uid=_uid(created))
         existing = self._call(self._batch.read_namespaced_job, spec.name, self.namespace)
         meta = existing.metadata
@@ -163,18 +168,30 @@ class KubernetesExecutor:
         job = self._call(self._batch.read_namespaced_job, spec.name, self.namespace)
         self._give_evaluation(spec, job)
 
-    def _give_evaluation(self, spec: JobSpec, job: V1Job) -> None:
-        """Create the Job's Secret with the evaluation, owned by the Job (deleted with it); the
-        pod waits for it. One that exists already (409) is this attempt's: same name, owner."""
+    def _give_evaluation(self, spec: JobSpec, job: V1Job, *, fresh: bool = False) -> None:
+        """Create the Job's Secret with the evaluation, owned by the Job (deleted before it); the
+        pod waits for it. For an adopted Job one that exists (409) is its own. For a Job just
+        created (`fresh`) it is a deleted predecessor's, left to the garbage collector by a
+        deletion that did not wait for it (ours do): waited out, or an error (the attempt runs
+        again under other names), never adopted to vanish under the new pod."""
         uid = job.metadata.uid if job.metadata is not None else None
         if not uid:
             raise KubernetesError(f"the API server gave Job {spec.name} no uid")
         secret = build_secret(spec, job_uid=uid)  # a dict is sent as it is
-        try:
-            self._call(self._core.create_namespaced_secret, self.namespace, secret)
-        except KubernetesError as exc:
-            if exc.status != 409:
-                raise
+        for retry in range(self.backoff.attempts):
+            try:
+                self._call(self._core.create_namespaced_secret, self.namespace, secret)
+                return
+            except KubernetesError as exc:
+                if exc.status != 409:
+                    raise
+                if not fresh:
+                    return  # the adopted Job's own, made by whoever created the Job
+            if retry + 1 < self.backoff.attempts:
+                self.sleep(self.backoff.delay(retry, self.jitter(), None))
+        name = secret["metadata"]["name"]
+        message = f"Secret {name} of a deleted Job {spec.name} is still there"
+        raise KubernetesError(message, status=409)
 
     def status(self, submission_id: int, attempt: int) -> JobStatus:
         """Where the attempt's Job is; `missing` when there is none."""
@@ -197,6 +214,17 @@ class KubernetesExecutor:
             self._log(chosen[i], container, tail_lines) if i in chosen else ""
             for i in range(shards)
         ]
+
+    def result_logs(
+        self, submission_id: int, attempt: int, shards: int
+    ) -> tuple[list[V1Pod], list[str]]:
+        """The attempt's pods listed now and each shard's evaluator log, for the result; `LogLost`
+        when a shard's pod is gone or its log cannot be read (404, 5xx)."""
+        pods = self.job_pods(submission_id, attempt)
+        missing = sorted(set(range(shards)) - set(pods_by_index(pods)))
+        if missing:
+            raise LogLost(f"no pod of shard {missing[0]} is left to read its log from")
+        return pods, self.logs(pods, shards)
 
     def job_pods(self, submission_id: int, attempt: int) -> list[V1Pod]:
         """The attempt's pods, listed now by its labels."""
@@ -302,6 +330,8 @@ class KubernetesExecutor:
         except KubernetesError as exc:
             if exc.status == 400:  # the container has not started: no log yet
                 return ""
+            if exc.status == 404 or (exc.status or 0) >= 500:  # the pod or its node is gone
+                raise LogLost(f"the log of pod {name}: {exc}", status=exc.status) from None
             raise
         try:
             return bytes(response.data).decode("utf-8", errors="replace")

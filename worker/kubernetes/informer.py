@@ -8,7 +8,9 @@ then watches from the list's resourceVersion with bookmarks; a watch ends after
 cluster costs one request per loop every few minutes. A `410 Gone` (the version was compacted
 away, in the stream or on the request) lists again and resumes from there; other failures are
 retried with backoff and reported by `failing`, so the watchers can tell an outage from a quiet
-Job. Followers subscribe by Job name and are woken when their Job or one of its pods changes.
+Job. A watch that ends at once with nothing in it (a proxy or a restarting server cutting it) is
+opened again after a back-off too, so a cut that repeats never becomes a stream of requests.
+Followers subscribe by Job name and are woken when their Job or one of its pods changes.
 """
 
 from __future__ import annotations
@@ -48,6 +50,16 @@ LIST_PAGE = 500
 SELECTOR = f"{APP_LABEL}={APP},{ROLE_LABEL}={ROLE}"
 EVERYONE = "*"  # `on_change`'s key after a (re-)list: every follower looks again
 RETRY = Backoff(attempts=1_000_000, base_s=0.5, cap_s=30.0)
+SHORT_WATCH_S = 1.0
+REOPEN = Backoff(attempts=1_000_000, base_s=0.8, cap_s=30.0)
+"""After a watch that lasted under `SHORT_WATCH_S` and brought no event (not even a bookmark),
+the next waits 0.8 s doubling to 30 s, with full jitter; a watch that lasted starts the count
+again (as client-go's reflector: "very short watch" in `watchHandler`, and its backoffManager,
+in staging/src/k8s.io/client-go/tools/cache/reflector.go)."""
+
+
+def _wait(stop: threading.Event, seconds: float) -> bool:
+    return stop.wait(seconds)
 
 
 @dataclass
@@ -74,6 +86,9 @@ class Informer:
     failure: Failure | None = None
     relists: int = 0
     """How many times a `410 Gone` made the loop list again."""
+    pause: Callable[[threading.Event, float], bool] = _wait
+    """Waits between requests (`stop.wait`; tests record them)."""
+    jitter: Callable[[], float] = random.random
     _objects: dict[str, Any] = field(default_factory=dict)
     _by_key: dict[str, dict[str, Any]] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
@@ -86,13 +101,16 @@ class Informer:
 
     def run(self, stop: threading.Event) -> None:
         """List, then watch, until `stop`; a 410 lists again, other failures back off."""
-        retry = 0
+        retry = short = 0
         while not stop.is_set():
             try:
                 if self.resource_version is None:
                     self._list()
-                self._follow(stop)
+                lasted = self._follow(stop)
                 retry, self.failure = 0, None
+                short = 0 if lasted else short + 1
+                if short and not stop.is_set():
+                    self.pause(stop, REOPEN.delay(short - 1, self.jitter(), None))
             except ApiException as exc:
                 if exc.status == 410:  # our version was compacted away: list again
                     log.info("the %s watch expired (410 Gone): listing again", self.kind)
@@ -117,7 +135,7 @@ class Informer:
         else:
             self.failure.error = error
         log.warning("the %s watch failed (retry %d): %s", self.kind, retry + 1, error)
-        stop.wait(RETRY.delay(retry, random.random(), None))
+        self.pause(stop, RETRY.delay(retry, self.jitter(), None))
         return retry + 1
 
     def _list(self) -> None:
@@ -148,11 +166,13 @@ class Informer:
         self.failure = None
         self.on_change(EVERYONE)  # what changed while unwatched is unknown: everyone looks
 
-    def _follow(self, stop: threading.Event) -> None:
-        """One watch request, from `resource_version` to the server's end of it."""
+    def _follow(self, stop: threading.Event) -> bool:
+        """One watch request, from `resource_version` to the server's end of it; whether it
+        lasted (`SHORT_WATCH_S`, or brought an event)."""
+        began, events = time.monotonic(), 0
         timeout = int(random.uniform(*self.watch_timeout_s))
         self._watch = watch.Watch()  # type: ignore[no-untyped-call]
-        events = self._watch.stream(  # type: ignore[no-untyped-call]
+        stream = self._watch.stream(  # type: ignore[no-untyped-call]
             self.list_call,
             self.namespace,
             label_selector=SELECTOR,
@@ -162,13 +182,14 @@ class Informer:
             _request_timeout=(self.connect_timeout_s, timeout + READ_SLACK_S),
         )
         try:
-            for event in events:
+            for event in stream:
                 if stop.is_set():
                     break
                 self._apply(event)
-                self.failure = None
+                self.failure, events = None, events + 1
         finally:
             self._watch = None
+        return events > 0 or time.monotonic() - began >= SHORT_WATCH_S
 
     def _apply(self, event: dict[str, Any]) -> None:
         kind, raw = event["type"], event["raw_object"]

@@ -227,7 +227,9 @@ def secret_name(submission_id: int, attempt: int) -> str:
 def build_secret(spec: JobSpec, *, job_uid: str) -> dict[str, Any]:
     """The Secret that carries the evaluation (its seeds: secret in the test phase) to the
     evaluator container alone, so they appear in no Job or Pod object. Owned by the Job (uid
-    `job_uid`): the garbage collector deletes it with the Job, and nothing else has to."""
+    `job_uid`): the garbage collector deletes it with the Job, and nothing else has to; with
+    `blockOwnerDeletion`, a foreground deletion of the Job ends only once it is gone, so a Job
+    made again under the same name never meets its predecessor's Secret."""
     name = job_name(spec.submission_id, spec.attempt)
     return {
         "apiVersion": "v1",
@@ -237,7 +239,13 @@ def build_secret(spec: JobSpec, *, job_uid: str) -> dict[str, Any]:
             "namespace": spec.namespace,
             "labels": job_labels(spec.submission_id, spec.attempt),
             "ownerReferences": [
-                {"apiVersion": "batch/v1", "kind": "Job", "name": name, "uid": job_uid}
+                {
+                    "apiVersion": "batch/v1",
+                    "kind": "Job",
+                    "name": name,
+                    "uid": job_uid,
+                    "blockOwnerDeletion": True,
+                }
             ],
         },
         "type": "Opaque",

@@ -1,22 +1,26 @@
 """What Job, pod and event objects say, read into the executor's view (pure, no I/O).
 
 `job_status` reads a Job's conditions, `job_ref` a listed Job's attempt, and `pod_view` an
-attempt's pods: a container that cannot start (its image cannot be pulled, say), how the policy
-container last ended, and whether the cluster (not the evaluation) evicted, preempted, lost or
-could not schedule a pod, so the worker can give every run a reason. `pods_by_index` picks the
-pod whose log stands for each shard, and `warnings` reads the cluster's warnings about a Job.
+attempt's pods: a container that cannot start (a bad image name, say) or whose image the kubelet
+is still trying to pull, how the policy container last ended, and whether the cluster (not the
+evaluation) evicted, preempted, lost, refused at its node or could not schedule a pod, so the
+worker can give every run a reason; `pending_verdict` says whose doing pods that never started
+are. `pods_by_index` picks the pod whose log stands for each shard, and `warnings` reads the
+cluster's warnings about a Job.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from typing import Any, Literal
 
 from kubernetes.client import V1Job, V1Pod
 
+from evaluator.plan import EvaluationPlan
+from internal_api.schemas import ErrorCause
 from worker.kubernetes.manifest import (
     ATTEMPT_LABEL,
     EVALUATOR,
@@ -49,11 +53,36 @@ class JobRef:
 
 
 @dataclass(frozen=True)
+class PullFailure:
+    """A container whose image the kubelet could not pull yet, and what it says."""
+
+    container: str
+    detail: str
+
+    def __str__(self) -> str:
+        return f"the {self.container} container: {self.detail}"
+
+
+STOPPED = "the cluster stopped the evaluation: "
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Why an attempt ends `error` while its Job runs on, and who caused it: the cluster (the
+    attempt runs again, no quota used) or None (an error to look at, not run again)."""
+
+    reason: str
+    cause: ErrorCause | None = ErrorCause.CLUSTER
+
+
+@dataclass(frozen=True)
 class PodView:
     """What an attempt's pods say beyond the Job's conditions."""
 
     stuck: str | None = None
-    """A container that cannot start (its image cannot be pulled, say), and why."""
+    """A container that cannot start whatever the wait (a bad image name, say), and why."""
+    pulling: PullFailure | None = None
+    """A container whose image pull failed: the kubelet tries again, with back-off."""
     policy_ended: str | None = None
     """How the policy container last ended, when it did not exit cleanly (OOMKilled, a code)."""
     evaluating: bool = False
@@ -62,8 +91,9 @@ class PodView:
     """In how many pods the evaluator container has started (an Indexed Job has one per
     shard: one shard left unscheduled holds the whole result)."""
     disrupted: str | None = None
-    """How the cluster evicted, preempted or lost a pod of the Job (a DisruptionTarget
-    condition, or a pod failed with a reason of the kubelet's such as Evicted or NodeLost)."""
+    """How the cluster evicted, preempted, lost or refused a pod of the Job (a DisruptionTarget
+    condition, a pod failed with a reason of the kubelet's such as Evicted or NodeLost, or
+    refused by its node's kubelet at admission, such as OutOfcpu)."""
     unschedulable: str | None = None
     """Why the scheduler cannot place a pending pod (PodScheduled=False, Unschedulable)."""
     alive: frozenset[str] = frozenset()
@@ -174,15 +204,14 @@ def _preference(pod: V1Pod) -> tuple[bool, float]:
 
 
 STUCK_REASONS = frozenset(
-    {
-        "ImagePullBackOff",
-        "InvalidImageName",
-        "ErrImageNeverPull",
-        "CreateContainerConfigError",
-        "CreateContainerError",
-    }
+    {"InvalidImageName", "ErrImageNeverPull", "CreateContainerConfigError", "CreateContainerError"}
 )
-"""Waiting reasons that do not resolve by waiting (ErrImagePull turns into ImagePullBackOff)."""
+"""Waiting reasons that do not resolve by waiting."""
+PULL_REASONS = frozenset({"ErrImagePull", "ImagePullBackOff", "RegistryUnavailable"})
+"""Waiting reasons of a failed pull the kubelet tries again, each time after a longer back-off
+(10 s doubling to 300 s: `imageBackOff` in pkg/kubelet/kubelet.go; ErrImagePull, then
+ImagePullBackOff while it waits: `EnsureImageExists` in pkg/kubelet/images/image_manager.go).
+A registry restarting or a node's network recovers; the wait is bounded by the pending timeout."""
 
 
 def _evaluator_end(containers: list[Any]) -> datetime | None:
@@ -197,9 +226,12 @@ def _evaluator_end(containers: list[Any]) -> datetime | None:
 def _look(view: PodView, container: Any, evaluator_end: datetime | None) -> PodView:
     state, last = container.state, container.last_state
     waiting = state.waiting if state is not None else None
-    if view.stuck is None and waiting is not None and waiting.reason in STUCK_REASONS:
-        detail = f": {waiting.message}" if waiting.message else ""
-        view = replace(view, stuck=f"the {container.name} container: {waiting.reason}{detail}")
+    if waiting is not None and waiting.reason in STUCK_REASONS | PULL_REASONS:
+        detail = f"{waiting.reason}: {waiting.message}" if waiting.message else waiting.reason
+        if view.stuck is None and waiting.reason in STUCK_REASONS:
+            view = replace(view, stuck=f"the {container.name} container: {detail}")
+        elif view.pulling is None and waiting.reason in PULL_REASONS:
+            view = replace(view, pulling=PullFailure(container.name, detail))
     if container.name == EVALUATOR and state is not None and (state.running or state.terminated):
         view = replace(view, evaluating=True)
     if container.name == POLICY and view.policy_ended is None:
@@ -228,6 +260,21 @@ DISRUPTING_REASONS = frozenset(
     {"Evicted", "NodeLost", "Preempting", "Shutdown", "Terminated", "NodeShutdown"}
 )
 """Reasons a pod fails for that are the node's or the cluster's doing, never the evaluation's."""
+ADMISSION_REASONS = frozenset(
+    {
+        "UnexpectedAdmissionError",
+        "UnexpectedPredicateFailureType",
+        "UnknownReason",
+        "InvalidNodeInfo",
+        "NodeAffinity",
+        "TaintToleration",
+    }
+)
+"""Reasons the kubelet refuses a pod the scheduler placed on its node (pkg/kubelet/lifecycle/
+predicate.go): the node's view of its room or labels differs from the scheduler's, or a device
+plugin's allocation failed (UnexpectedAdmissionError). `OutOf<resource>` (OutOfcpu,
+OutOfmemory, OutOfnvidia.com/gpu) says which resource it found short. The pod fails at once,
+never having run: the node's doing, never the evaluation's."""
 
 
 def _disruption(name: str, status: Any) -> str | None:
@@ -236,10 +283,32 @@ def _disruption(name: str, status: Any) -> str | None:
             why = condition.reason or "DisruptionTarget"
             detail = f": {condition.message}" if condition.message else ""
             return f"pod {name} was disrupted by the cluster ({why}{detail})"
+    detail = f": {status.message}" if status.message else ""
     if status.phase == "Failed" and status.reason in DISRUPTING_REASONS:
-        detail = f": {status.message}" if status.message else ""
         return f"pod {name} failed on its node ({status.reason}{detail})"
+    reason = status.reason or ""
+    if status.phase == "Failed" and (reason in ADMISSION_REASONS or reason.startswith("OutOf")):
+        return f"pod {name} was refused by its node's kubelet ({reason}{detail})"
     return None
+
+
+def pending_verdict(view: PodView, waited: float, warning: Callable[[], str]) -> Verdict:
+    """Why pods not all started after `waited` seconds (the pending timeout) end the attempt.
+    An image still not pulled is the participant's to fix when it is their policy's (the
+    registry took it, so it is theirs that does not pull), the cluster's when it is the
+    platform's evaluator; `warning` (a request: asked only here) tells the Job's last
+    warning, `: reason` or ""."""
+    pull = view.pulling
+    if pull is not None and pull.container == POLICY:
+        return Verdict(f"the evaluation could not start: {pull}", cause=None)
+    if pull is not None:
+        return Verdict(f"{STOPPED}an image could not be pulled in {waited:.0f} s: {pull}")
+    if view.unschedulable is not None:
+        why = view.unschedulable
+        return Verdict(f"{STOPPED}its pod could not be scheduled in {waited:.0f} s: {why}")
+    if view.count == 0:
+        return Verdict(f"{STOPPED}no pod was created in {waited:.0f} s{warning()}")
+    return Verdict(f"{STOPPED}its pod stayed pending for {waited:.0f} s{warning()}")
 
 
 def _unschedulable(status: Any) -> str | None:
@@ -269,6 +338,16 @@ def _ending(terminated: Any) -> str:
 
 
 _EPISODE_LINE = re.compile(r"^manieval: run (\d+) episode \d+:", re.MULTILINE)
+
+
+def progress_in(logs: Sequence[str], plan: EvaluationPlan) -> dict[str, Any]:
+    """A running evaluation's progress from its evaluators' logs so far."""
+    done, last = episodes_in(logs)
+    progress: dict[str, Any] = {"done": done, "total": plan.episode_count()}
+    if last is not None and last < len(plan.runs):
+        run = plan.runs[last]
+        progress |= {"task": run.env_id, "condition": run.condition.name}
+    return progress
 
 
 def episodes_in(logs: Sequence[str]) -> tuple[int, int | None]:

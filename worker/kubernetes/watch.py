@@ -5,17 +5,16 @@ the namespace's ResourceQuotas have room for all of it (`worker.kubernetes.quota
 that outnumber the quota (a rollout) never create Jobs the quota would starve. It creates the
 Job (adopting it on 409), then follows it through the process's watch of the cluster
 (`worker.kubernetes.informer`: one list+watch of Jobs and one of pods for every attempt the
-process follows, so no request per Job and look). It looks whenever the Job or its pods change,
-and every `k8s_poll_interval` seconds for its clocks: the Job's conditions decide the end, the
-pods say when an image cannot be pulled (no point waiting for the deadline) and when the
-cluster, not the policy, stopped the evaluation: a pod evicted, preempted or lost with its node
-(deleted or not) ends the attempt at once, and pods unscheduled, pending or never created end it
-after `k8s_pending_timeout_s`, each as `error` with the cluster's reason and cause (the server
-then runs it again, once; no quota is used), never `timed_out` at the deadline. Progress is the
-evaluator's log, read every `k8s_progress_interval` seconds while it runs (the only request a
-running Job costs); the result is read from the log once, at the end, by this process: nothing
-in the pod can write one. Between looks the worker asks the server every second whether the
-attempt still runs: a cancel deletes the Job at once, and the evaluator, on SIGTERM, stops.
+process follows). It looks whenever the Job or its pods change, and every `k8s_poll_interval`
+seconds for its clocks: the Job's conditions decide the end; the pods say when a container can
+never start, and when the cluster, not the policy, stopped the evaluation (`status`): a pod
+evicted, preempted, refused by its node or lost ends the attempt at once, and pods unscheduled,
+pending, never created or whose image does not pull end it after `k8s_pending_timeout_s`, as
+`error` with the cluster's reason and cause (run again once, no quota used), never `timed_out`.
+Progress is the evaluator's log, read every `k8s_progress_interval` seconds while it runs; the
+result is read from the log once, at the end, by this process (a log lost with its pod or node
+is the cluster's). Between looks the worker asks the server every second whether the attempt
+still runs: a cancel deletes the Job at once, and the evaluator, on SIGTERM, stops.
 """
 
 from __future__ import annotations
@@ -37,6 +36,7 @@ from worker.kubernetes.client import (
     JobConflict,
     KubernetesError,
     KubernetesExecutor,
+    LogLost,
     kubernetes_executor,
 )
 from worker.kubernetes.informer import ClusterWatch, Failure, cluster_watch
@@ -49,7 +49,16 @@ from worker.kubernetes.manifest import (
 )
 from worker.kubernetes.quota import demand, never_fits, shortfall
 from worker.kubernetes.spec import job_spec
-from worker.kubernetes.status import JobStatus, PodView, episodes_in, job_status, pod_view
+from worker.kubernetes.status import (
+    STOPPED,
+    JobStatus,
+    PodView,
+    Verdict,
+    job_status,
+    pending_verdict,
+    pod_view,
+    progress_in,
+)
 from worker.outcome import conclusion, ended
 from worker.server_api import ServerAPI, ServerUnavailable
 from worker.settings import WorkerSettings
@@ -288,10 +297,9 @@ class _Watch:
             return self._make_room()
         if view.stuck is not None:
             return self.end(State.ERROR, f"the evaluation could not start: {view.stuck}")
-        cluster = self._cluster_failure(view)
-        if cluster is not None:
-            reason = f"the cluster stopped the evaluation: {cluster}"
-            return self.end(State.ERROR, reason, cause=CLUSTER)
+        verdict = self._stopped(view)
+        if verdict is not None:
+            return self.end(State.ERROR, verdict.reason, cause=verdict.cause)
         progress: dict[str, Any] = {"phase": status.phase, "done": 0}
         if view.evaluating:
             now = time.monotonic()
@@ -305,17 +313,18 @@ class _Watch:
             return self._cancelled()
         return None
 
-    def _cluster_failure(self, view: PodView) -> str | None:
-        """The cluster's doing, said as it says it: a pod evicted, preempted or lost with its
-        node (deleted or not), or no pod running past `k8s_pending_timeout_s` (unschedulable,
-        refused by a ResourceQuota, never created). None while the Job may still run."""
+    def _stopped(self, view: PodView) -> Verdict | None:
+        """The cluster's doing, said as it says it: a pod evicted, preempted, refused or lost
+        with its node (deleted or not); or pods not started past `k8s_pending_timeout_s`
+        (`pending_verdict`: an image that does not pull, unschedulable, refused by a
+        ResourceQuota, never created). None while the Job may still run."""
         if view.disrupted is not None:
-            return view.disrupted
+            return Verdict(STOPPED + view.disrupted)
         gone = sorted(self._seen - view.names)
         if gone and self.executor.status(*self.ids).phase in ("pending", "running"):
             # A live pod vanished while the Job runs on (not its deadline, which deletes pods
             # too): evicted and deleted, preempted, or garbage-collected with a lost node.
-            return f"pod {gone[0]} was deleted (evicted, preempted, or its node was lost)"
+            return Verdict(f"{STOPPED}pod {gone[0]} was deleted (evicted, preempted, or lost)")
         if gone:
             return None  # the Job has just ended: the next look concludes it
         self._seen = view.alive
@@ -328,12 +337,8 @@ class _Watch:
             return None
         waited = now - self._pending_since
         if waited <= self.settings.k8s_pending_timeout_s:
-            return None
-        if view.unschedulable is not None:
-            return f"its pod could not be scheduled in {waited:.0f} s: {view.unschedulable}"
-        if view.count == 0:
-            return f"no pod was created in {waited:.0f} s{self._warnings()}"
-        return f"its pod stayed pending for {waited:.0f} s{self._warnings()}"
+            return None  # an image pull the kubelet retries, a node the autoscaler adds
+        return pending_verdict(view, waited, self._warnings)
 
     def _room_taken(self) -> bool:
         """Whether the quota refused this Job's pods: another worker took the room between
@@ -387,12 +392,7 @@ class _Watch:
         except KubernetesError as exc:
             log.warning("Job %s: its log could not be read: %s", self.spec.name, exc)
             return self._read_progress
-        done, last = episodes_in(logs)
-        progress: dict[str, Any] = {"done": done, "total": self.plan.episode_count()}
-        if last is not None and last < len(self.plan.runs):
-            run = self.plan.runs[last]
-            progress |= {"task": run.env_id, "condition": run.condition.name}
-        return progress
+        return progress_in(logs, self.plan)
 
     def _beat(self, progress: dict[str, Any] | None) -> bool:
         """Report progress (None: a heartbeat only); False when the attempt ended elsewhere
@@ -410,24 +410,24 @@ class _Watch:
     def _concluded(self, status: JobStatus) -> State | None:
         if status.phase == "succeeded":
             return self._collect()
-        if status.phase == "deadline_exceeded":
-            disrupted = self.executor.pods(*self.ids).disrupted
-            if disrupted is not None:  # the cluster's doing, not the policy's
-                reason = (
-                    f"the cluster evicted the evaluation and it then ran out of time: {disrupted}"
-                )
-                return self.end(State.ERROR, reason, cause=CLUSTER)
-            return self.end(State.TIMED_OUT, "the evaluation exceeded its time budget")
         if status.phase == "missing":
             reason = f"the evaluation's Job {self.spec.name} disappeared"
             return self.end(State.ERROR, reason, cause=CLUSTER)
+        disrupted = self.executor.pods(*self.ids).disrupted  # evicted, refused by its node...
+        if disrupted is not None:  # ...the cluster's doing, not the policy's
+            then = " and it then ran out of time" if status.phase == "deadline_exceeded" else ""
+            reason = f"the cluster stopped the evaluation{then}: {disrupted}"
+            return self.end(State.ERROR, reason, cause=CLUSTER)
+        if status.phase == "deadline_exceeded":
+            return self.end(State.TIMED_OUT, "the evaluation exceeded its time budget")
         return self.end(State.ERROR, f"the evaluator failed ({status.reason})")
 
     def _collect(self) -> State | None:
         try:  # the one read of the logs: the pods listed now, not as the watch last saw them
-            pods = self.executor.job_pods(*self.ids)
-            logs = self.executor.logs(pods, self.spec.shards, container=EVALUATOR)
+            pods, logs = self.executor.result_logs(*self.ids, self.spec.shards)
             result = result_from_logs(self.plan, logs)
+        except LogLost as exc:  # gone with its pod or node: the cluster's doing
+            return self.end(State.ERROR, f"the evaluation's log was lost: {exc}", cause=CLUSTER)
         except (KubernetesError, JobOutputError) as exc:
             return self.end(State.ERROR, f"the evaluation's result could not be read: {exc}")
         policy_ended, policy_log = self._policy_side(pods)
