@@ -99,6 +99,12 @@ class Submission(Base):
     log_tail: Mapped[str] = mapped_column(Text, default="")
     result: Mapped[dict[str, Any] | None]
     """The evaluator's result document of the current attempt (schema evaluator.results)."""
+    board_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    """The phase's board version this submission counts for (docs/server.md, Re-evaluation)."""
+    reevaluation_of: Mapped[int | None] = mapped_column(
+        ForeignKey("submissions.id", ondelete="CASCADE"), index=True
+    )
+    """The submission this one re-evaluates for `board_version`; None for a participant's own."""
 
     user: Mapped[User] = relationship(lazy="raise")
     challenge: Mapped[Challenge] = relationship(lazy="raise")
