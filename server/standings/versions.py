@@ -46,12 +46,9 @@ def published_after_end(db: DB, *, submission_id: int) -> None:
     """A submission ended (or was hidden): if it is a re-evaluation, its owner's rows are
     recomputed and its version published when due. The rows first: that takes the locks in
     `server.standings.entries`' order (user, teams, phase), the publication's phase last."""
-    found = db.execute(
-        select(Submission.phase_id, Submission.user_id, Submission.reevaluation_of).where(
-            Submission.id == submission_id
-        )
-    ).first()
-    if found is None or found.reevaluation_of is None:
+    submission = db.get(Submission, submission_id)
+    if submission is None or submission.reevaluation_of is None:
         return
-    refresh(db, phase_id=found.phase_id, user_id=found.user_id)
-    publish_when_done(db, phase_id=found.phase_id)
+    db.refresh(submission)  # the state machine's updates bypass the session
+    refresh(db, phase_id=submission.phase_id, user_id=submission.user_id)
+    publish_when_done(db, phase_id=submission.phase_id)
