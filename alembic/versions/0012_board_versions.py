@@ -24,22 +24,17 @@ def _version() -> sa.Column[int]:
 
 
 def upgrade() -> None:
-    with op.batch_alter_table("phases", schema=None) as batch_op:
-        batch_op.add_column(_version())
-        batch_op.add_column(sa.Column("pending_board_version", sa.Integer(), nullable=True))
-    with op.batch_alter_table("submissions", schema=None) as batch_op:
-        batch_op.add_column(_version())
-        batch_op.add_column(sa.Column("reevaluation_of", sa.Integer(), nullable=True))
-        batch_op.create_index(
-            batch_op.f("ix_submissions_reevaluation_of"), ["reevaluation_of"], unique=False
-        )
-        batch_op.create_foreign_key(
-            batch_op.f("fk_submissions_reevaluation_of_submissions"),
-            "submissions",
-            ["reevaluation_of"],
-            ["id"],
-            ondelete="CASCADE",
-        )
+    # Columns are added in place, never by rebuilding a table on SQLite: dropping the old
+    # `phases` or `submissions` there (foreign keys on) would cascade into every table that
+    # refers to them. So `reevaluation_of` has no foreign key (a re-evaluation has its
+    # original's owner, and goes with them).
+    op.add_column("phases", _version())
+    op.add_column("phases", sa.Column("pending_board_version", sa.Integer(), nullable=True))
+    op.add_column("submissions", _version())
+    op.add_column("submissions", sa.Column("reevaluation_of", sa.Integer(), nullable=True))
+    op.create_index(
+        op.f("ix_submissions_reevaluation_of"), "submissions", ["reevaluation_of"], unique=False
+    )
     op.drop_index("ix_leaderboard_rank", table_name="leaderboard_entries")
     with op.batch_alter_table("leaderboard_entries", schema=None) as batch_op:
         batch_op.add_column(_version())
@@ -82,13 +77,11 @@ def downgrade() -> None:
         ["phase_id", sa.literal_column("score DESC"), "submitted_at", "id"],
         unique=False,
     )
-    with op.batch_alter_table("submissions", schema=None) as batch_op:
-        batch_op.drop_constraint(
-            batch_op.f("fk_submissions_reevaluation_of_submissions"), type_="foreignkey"
-        )
-        batch_op.drop_index(batch_op.f("ix_submissions_reevaluation_of"))
-        batch_op.drop_column("reevaluation_of")
-        batch_op.drop_column("board_version")
-    with op.batch_alter_table("phases", schema=None) as batch_op:
-        batch_op.drop_column("pending_board_version")
-        batch_op.drop_column("board_version")
+    op.drop_index(op.f("ix_submissions_reevaluation_of"), table_name="submissions")
+    for table, column in (
+        ("submissions", "reevaluation_of"),
+        ("submissions", "board_version"),
+        ("phases", "pending_board_version"),
+        ("phases", "board_version"),
+    ):
+        op.drop_column(table, column)  # in place (SQLite 3.35 and later): see `upgrade`
