@@ -1,5 +1,6 @@
 """Operator commands of the server: `manieval db upgrade`, `manieval admin create`,
-`manieval challenge load` and `manieval challenge teams` (`manieval serve` and `demo` compose
+`manieval challenge load`, `manieval challenge teams` and `manieval challenge reevaluate`
+(`manieval serve` and `demo` compose
 it with the worker: `manieval/serve.py`)."""
 
 from __future__ import annotations
@@ -195,3 +196,46 @@ def challenge_teams(
         raise typer.Exit(1) from None
     counted = "per team" if mode == "on" else "per user"
     console.print(f"challenge {slug}: quotas and leaderboard rows count {counted}")
+
+
+@challenge_app.command("reevaluate")
+def challenge_reevaluate(
+    slug: Annotated[str, typer.Argument(help="The challenge.")],
+    phase: Annotated[
+        str | None, typer.Option(help="Only this phase (default: every phase with entries).")
+    ] = None,
+) -> None:
+    """Run every entry of a phase's board again on the current suite, into a new board version
+    (nobody's quota; the previous version stays readable)."""
+    from server.challenges.service import get_challenge, get_phase
+    from server.submissions.reevaluation import NothingToReevaluate, Started, reevaluate
+
+    s = settings()
+    sessions = migrated_sessions(s)
+    started: list[Started] = []
+    skipped: list[str] = []
+    try:
+        with sessions.begin() as db:
+            challenge = get_challenge(db, slug=slug)
+            phases = [get_phase(challenge, phase)] if phase is not None else challenge.phases
+            for target in phases:
+                try:
+                    started.append(
+                        reevaluate(db, challenge=challenge, phase=target, by="the operator")
+                    )
+                except NothingToReevaluate:
+                    if phase is not None:
+                        raise
+                    skipped.append(target.name)  # of every phase, those without entries
+            if not started:
+                raise AppError(f"no phase of {slug!r} has entries on its board to re-evaluate")
+    except AppError as exc:
+        console.print(f"[red]error:[/] {exc.message}")
+        raise typer.Exit(1) from None
+    for done in started:
+        console.print(
+            f"challenge {slug} phase {done.phase}: {len(done.submissions)} entries queued for "
+            f"board version {done.board_version}; the current board stays until they end"
+        )
+    for name in skipped:
+        console.print(f"challenge {slug} phase {name}: no entries, nothing to re-evaluate")

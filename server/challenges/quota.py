@@ -25,6 +25,7 @@ from server.models import (
 
 # A submission reserves quota from the moment it is accepted; if it ends in `error` (our
 # fault) or `cancelled` the reservation is released. Running and policy-caused endings count.
+# A re-evaluation (`Submission.reevaluation_of`) holds none, in any state.
 QUOTA_HOLDING = frozenset(
     {State.QUEUED, State.LAUNCHING, State.RUNNING, State.SUCCEEDED, State.FAILED, State.TIMED_OUT}
 )
@@ -61,7 +62,11 @@ def _counted(user: User, team: Team | None) -> ColumnElement[bool]:
 def quota_use(db: DB, *, user: User, challenge: Challenge, now: datetime) -> QuotaUse:
     """How much of the challenge's daily and concurrent quota the user (or their team) holds."""
     team = _team(db, user=user, challenge=challenge)
-    counted = (_counted(user, team), Submission.challenge_id == challenge.id)
+    counted = (
+        _counted(user, team),
+        Submission.challenge_id == challenge.id,
+        Submission.reevaluation_of.is_(None),  # an organizer's re-evaluation: nobody's quota
+    )
     day = db.scalars(
         select(Submission.created_at)
         .where(*counted, Submission.created_at > now - DAY, Submission.state.in_(QUOTA_HOLDING))

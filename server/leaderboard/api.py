@@ -39,6 +39,7 @@ async def leaderboard(
     page: PageNo = 1,
     per_page: PerPage = 50,
     format: Literal["json", "csv", "markdown", "latex"] = "json",
+    version: Annotated[int | None, Query(ge=1, le=1_000_000)] = None,
 ) -> Response:
     """Best public submission per user (per team, in a challenge with team mode on), by score
     (equal scores: the earlier submission first).
@@ -55,12 +56,16 @@ async def leaderboard(
     to date from the rows that changed (at most once every `MANIEVAL_LEADERBOARD_MAX_AGE`
     seconds while it changes), and every page, size and format is cut from it, so a page
     costs neither a thread nor a query.
+
+    `version` reads an earlier board version: each re-evaluation of the phase (after a change
+    of its suite or evaluator) publishes a new one, and the earlier ones stay readable; none
+    given, the current one (docs/server.md, "Re-evaluation").
     """
     svc = services(request)
-    board = svc.boards.fresh(slug, phase)
+    board = svc.boards.fresh(slug, phase, version)
     if board is None:
         board = await run_in_threadpool(
-            lambda: svc.boards.current(svc.sessions, slug=slug, phase=phase)
+            lambda: svc.boards.current(svc.sessions, slug=slug, phase=phase, board_version=version)
         )
     if format in ("markdown", "latex"):
         paper: PaperFormat = "markdown" if format == "markdown" else "latex"

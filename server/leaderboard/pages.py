@@ -30,10 +30,15 @@ router = APIRouter(include_in_schema=False)
 SORT_LIMIT = 2000  # rows a sorted view reads; boards are ranked by score beyond that
 
 
-def snapshot(request: Request, db: DB, *, slug: str, phase: str) -> Snapshot:
-    """The phase's board as the API serves it (confirmed in the caller's session when due)."""
+def snapshot(
+    request: Request, db: DB, *, slug: str, phase: str, board_version: int | None = None
+) -> Snapshot:
+    """The phase's board (of `board_version`; None: the current one) as the API serves it
+    (confirmed in the caller's session when due)."""
     boards = services(request).boards
-    return boards.fresh(slug, phase) or boards.current_in(db, slug=slug, phase=phase)
+    return boards.fresh(slug, phase, board_version) or boards.current_in(
+        db, slug=slug, phase=phase, board_version=board_version
+    )
 
 
 def top_rows(request: Request, db: DB, *, slug: str, phase: str, count: int) -> Board:
@@ -67,8 +72,10 @@ def leaderboard_page(
     dir: Annotated[str, Query(pattern="^(asc|desc)$")] = "",
     page: Annotated[int, Query(ge=1, le=100_000)] = 1,
     per_page: Annotated[int, Query(ge=10, le=200)] = 50,
+    version: Annotated[int | None, Query(ge=1, le=1_000_000)] = None,
 ) -> Response:
-    """The whole board: per-task success with intervals, stress conditions, sortable."""
+    """The whole board (of board version `version`; None: the current one): per-task success
+    with intervals, stress conditions, sortable."""
     challenge = get_challenge(db, slug=slug)
     shown = shown_phase(challenge, name=phase)
     tasks, conditions = suite_columns(challenge)
@@ -77,7 +84,7 @@ def leaderboard_page(
     if sort not in {c.key for c in columns}:
         sort = "rank"
     descending = dir == "desc" if dir else sort not in ("user", "rank")
-    board = snapshot(request, db, slug=challenge.slug, phase=shown.name)
+    board = snapshot(request, db, slug=challenge.slug, phase=shown.name, board_version=version)
     places: Sequence[int]
     if sort == "rank":
         places, total = range(board.total)[(page - 1) * per_page : page * per_page], board.total
@@ -98,6 +105,10 @@ def leaderboard_page(
         "descending": descending,
         "truncated": sort != "rank" and total >= SORT_LIMIT,
         "alpha": board.alpha,
+        "board_version": board.board_version,
+        "current_version": max(shown.board_version, board.board_version),
+        "pending_version": shown.pending_board_version,
+        "version_asked": version,
     }
     # What the content shows, all of it: a stored row's serial always means the same row
     # (server/leaderboard/stored.py), the rest is the challenge's and the address's.
@@ -111,6 +122,8 @@ def leaderboard_page(
         tuple(stresses),
         tuple((board.rows[i].serial, board.place(i)) for i in places),
         *(context[k] for k in ("total", "page", "per_page", "sort", "descending", "alpha")),
+        *(context[k] for k in ("board_version", "current_version", "pending_version")),
+        version,
     )
 
     def content() -> str:
@@ -132,5 +145,11 @@ def leaderboard_page(
     # A page past the end is not kept: any address could otherwise push real pages out.
     main = services(request).board_pages.get(key, content) if places else content()
     return render(
-        request, who, "leaderboard.html", challenge=challenge, phase=shown, board_main=Markup(main)
+        request,
+        who,
+        "leaderboard.html",
+        challenge=challenge,
+        phase=shown,
+        board_main=Markup(main),
+        may_reevaluate=shown.pending_board_version is None and board.total > 0,
     )

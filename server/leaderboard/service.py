@@ -2,7 +2,8 @@
 team mode, plus baselines.
 
 Rows live in ``leaderboard_entries``, recomputed by :mod:`server.standings.entries` whenever
-something that decides them changes. Each change bumps the phase's ``leaderboard_version``;
+something that decides them changes, per board version (docs/server.md, Re-evaluation). Each
+change bumps the phase's ``leaderboard_version`` (a cache key, not the board version);
 the API, the leaderboard pages and the challenge pages read whole boards kept per version
 (:mod:`server.leaderboard.snapshot`).
 """
@@ -36,18 +37,29 @@ from server.standings.entries import eligible_for, summary
 V = TypeVar("V")
 
 
-def board_version(db: DB, *, slug: str, phase: str) -> tuple[int, int]:
-    """The id of a challenge's phase and its leaderboard version (one indexed lookup); the
-    errors of `get_challenge` and `get_phase` when there is no such phase."""
+def phase_versions(
+    db: DB, *, slug: str, phase: str, version: int | None = None
+) -> tuple[int, int, int]:
+    """The id of a challenge's phase, its leaderboard version (the cache key) and the board
+    version to show: `version`, or the current one when None (one indexed lookup); the errors
+    of `get_challenge` and `get_phase` when there is no such phase, NotFound when there is no
+    published board version `version`."""
     found = db.execute(
-        select(Phase.id, Phase.leaderboard_version)
+        select(Phase.id, Phase.leaderboard_version, Phase.board_version)
         .join(Challenge, Phase.challenge_id == Challenge.id)
         .where(Challenge.slug == slug, Phase.name == phase)
     ).first()
     if found is None:
         get_phase(get_challenge(db, slug=slug), phase)  # raises the precise 404 / 422
         raise NotFound(f"no phase {phase!r}")  # pragma: no cover - raced with a delete
-    return found[0], found[1]
+    phase_id, cache, current = found
+    if version is None:
+        return phase_id, cache, current
+    if not 1 <= version <= current:
+        raise NotFound(
+            f"phase {phase!r} of {slug!r} has board versions 1 to {current}, not {version}"
+        )
+    return phase_id, cache, version
 
 
 _COLUMNS: OrderedDict[str, tuple[list[str], list[str]]] = OrderedDict()
@@ -88,8 +100,15 @@ def suite_environment(challenge: Challenge) -> Environment:
     return found
 
 
+def current_version(db: DB, *, phase_id: int) -> int:
+    """The board version the phase's board shows now."""
+    return db.scalar(select(Phase.board_version).where(Phase.id == phase_id)) or 1
+
+
 def baseline_points(db: DB, *, phase_id: int) -> list[tuple[str, float, datetime]]:
-    """The phase's baselines as (label, score, submitted at), best first, for its chart."""
+    """The current board's baselines as (label, score, submitted at), best first, for its
+    chart."""
+    version = current_version(db, phase_id=phase_id)
     rows = db.execute(
         select(
             LeaderboardEntry.username,
@@ -97,7 +116,11 @@ def baseline_points(db: DB, *, phase_id: int) -> list[tuple[str, float, datetime
             LeaderboardEntry.score,
             LeaderboardEntry.submitted_at,
         )
-        .where(LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.baseline.is_(True))
+        .where(
+            LeaderboardEntry.phase_id == phase_id,
+            LeaderboardEntry.board_version == version,
+            LeaderboardEntry.baseline.is_(True),
+        )
         .order_by(LeaderboardEntry.score.desc())
     ).all()
     return [(f"baseline {name} #{sid}", score, at) for name, sid, score, at in rows]
@@ -106,7 +129,8 @@ def baseline_points(db: DB, *, phase_id: int) -> list[tuple[str, float, datetime
 def record_points(db: DB, *, phase_id: int) -> list[ScorePoint]:
     """Public succeeded submissions that beat every earlier one: the database keeps the
     running best (a window function), so only the few records travel, however many ran."""
-    records = and_(*eligible_for(phase_id), Submission.baseline.is_(False))
+    version = current_version(db, phase_id=phase_id)
+    records = and_(*eligible_for(phase_id, version), Submission.baseline.is_(False))
     order = (Submission.created_at, Submission.id)
     ranked = (
         select(
@@ -201,11 +225,14 @@ BOARD_COLUMNS = (
 """What a board row shows besides its summary."""
 
 
-def board_query(phase_id: int, *summary: Any) -> Select[*tuple[Any, ...]]:
-    """The phase's rows in rank order, with these summary columns."""
+def board_query(phase_id: int, board_version: int, *summary: Any) -> Select[*tuple[Any, ...]]:
+    """The rows of this version of the phase's board in rank order, with these summary
+    columns."""
     return (
         select(*BOARD_COLUMNS, *summary)
-        .where(LeaderboardEntry.phase_id == phase_id)
+        .where(
+            LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.board_version == board_version
+        )
         .order_by(*_RANK_ORDER)
     )
 

@@ -40,8 +40,8 @@ from server.leaderboard.service import (
     Interval,
     Row,
     board_query,
-    board_version,
     interval_of_summary,
+    phase_versions,
     suite_columns,
     suite_environment,
 )
@@ -59,6 +59,8 @@ means one row. SQLite reuses the highest ids once their rows are gone: there, a 
 read whole on every change (SQLite serves one process and small boards)."""
 
 
+BoardKey = tuple[str, str, int | None]
+"""A challenge's slug, a phase's name, and a board version (None: the current one)."""
 Sort = tuple[str, bool, int]  # a sort key's name, descending, how many rows it sorts
 
 
@@ -69,7 +71,8 @@ class Snapshot:
     slug: str
     phase: str
     phase_id: int  # a phase removed and made again under its name starts at version 0 again
-    version: int
+    version: int  # the phase's leaderboard version (the cache key) it was read at
+    board_version: int  # which evaluation of the phase it shows (docs/server.md, Re-evaluation)
     rows: list[Stored]
     ranks: list[int | None]  # None for baselines
     ties: TieGroups
@@ -164,21 +167,22 @@ class Snapshot:
 
 
 class Snapshots:
-    """The current snapshot of every phase asked for (a few per challenge: bounded by the
-    phases that exist, as an unknown one raises before anything is kept)."""
+    """The current snapshot of every phase asked for, and of each earlier board version asked
+    for by number (a few per challenge: bounded by the phases and versions that exist, as an
+    unknown one raises before anything is kept)."""
 
     def __init__(self, max_age: float) -> None:
         self._max_age = max_age
-        self._boards: dict[tuple[str, str], Snapshot] = {}
-        self._reading: set[tuple[str, str]] = set()
+        self._boards: dict[BoardKey, Snapshot] = {}
+        self._reading: set[BoardKey] = set()
         self._lock = threading.Lock()
         self._read = threading.Condition(self._lock)  # notified when a look is over
 
-    def fresh(self, slug: str, phase: str) -> Snapshot | None:
-        """The phase's snapshot while it is trusted without a look at the database: for
-        `max_age` seconds after its version was confirmed, and while another thread is
-        confirming it or bringing it up to date."""
-        key = (slug, phase)
+    def fresh(self, slug: str, phase: str, board_version: int | None = None) -> Snapshot | None:
+        """The phase's snapshot (of `board_version`; None: the current one) while it is trusted
+        without a look at the database: for `max_age` seconds after its version was confirmed,
+        and while another thread is confirming it or bringing it up to date."""
+        key = (slug, phase, board_version)
         with self._lock:
             found = self._boards.get(key)
             checking = key in self._reading
@@ -186,14 +190,24 @@ class Snapshots:
             return None
         return found
 
-    def current(self, sessions: Callable[[], DB], *, slug: str, phase: str) -> Snapshot:
-        """The phase's snapshot, its version confirmed or brought up to date (blocking)."""
+    def current(
+        self,
+        sessions: Callable[[], DB],
+        *,
+        slug: str,
+        phase: str,
+        board_version: int | None = None,
+    ) -> Snapshot:
+        """The phase's snapshot (of `board_version`; None: the current one), its version
+        confirmed or brought up to date (blocking)."""
         with sessions() as db:
-            return self.current_in(db, slug=slug, phase=phase)
+            return self.current_in(db, slug=slug, phase=phase, board_version=board_version)
 
-    def current_in(self, db: DB, *, slug: str, phase: str) -> Snapshot:
+    def current_in(
+        self, db: DB, *, slug: str, phase: str, board_version: int | None = None
+    ) -> Snapshot:
         """`current`, in a session the caller holds."""
-        key = (slug, phase)
+        key = (slug, phase, board_version)
         with self._lock:
             waited = False
             while (held := self._boards.get(key)) is None and key in self._reading:
@@ -203,15 +217,25 @@ class Snapshots:
                 return held  # another thread looks at the database: this one may lag
             self._reading.add(key)
         try:
-            phase_id, version = board_version(db, slug=slug, phase=phase)  # 404/422 first
+            phase_id, version, shown = phase_versions(  # 404/422 first
+                db, slug=slug, phase=phase, version=board_version
+            )
             if held is not None and (held.phase_id, held.version) == (phase_id, version):
                 held.checked = time.monotonic()
                 return held
             same = held if held is not None and held.phase_id == phase_id else None
+            if same is not None and same.board_version != shown:
+                same = None  # a re-evaluation was published: another board
             read = advance(db, same, version=version) if same is not None else None
             if read is None:
                 read = read_whole(
-                    db, slug=slug, phase=phase, phase_id=phase_id, version=version, held=same
+                    db,
+                    slug=slug,
+                    phase=phase,
+                    phase_id=phase_id,
+                    version=version,
+                    board_version=shown,
+                    held=same,
                 )
                 if held is None:  # the phase's first board in this process
                     _exempt_from_gc()
@@ -256,10 +280,18 @@ def _interval(db: DB, entry: Any) -> Interval:
 
 
 def read_whole(
-    db: DB, *, slug: str, phase: str, phase_id: int, version: int, held: Snapshot | None = None
+    db: DB,
+    *,
+    slug: str,
+    phase: str,
+    phase_id: int,
+    version: int,
+    board_version: int,
+    held: Snapshot | None = None,
 ) -> Snapshot:
-    """The phase's board read whole (what `held`, of this phase, derived already is kept)."""
-    entries = db.execute(board_query(phase_id, *_summary_columns())).all()
+    """Version `board_version` of the phase's board read whole (what `held`, of this phase
+    and board version, derived already is kept)."""
+    entries = db.execute(board_query(phase_id, board_version, *_summary_columns())).all()
     challenge = get_challenge(db, slug=slug)
     tasks, conditions = suite_columns(challenge)
     current = suite_environment(challenge)
@@ -278,6 +310,7 @@ def read_whole(
         phase,
         phase_id,
         version,
+        board_version,
         rows,
         ranks,
         ties,
@@ -308,7 +341,9 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
     if found is None or found[0] != held.suite_hash:
         return None  # its columns may have changed
     e = LeaderboardEntry
-    ids = select(func.array_agg(e.id)).where(e.phase_id == held.phase_id)
+    ids = select(func.array_agg(e.id)).where(
+        e.phase_id == held.phase_id, e.board_version == held.board_version
+    )
     now = set(db.connection().execute(ids).scalar() or ())  # one array: no row per id
     gone = held.by_id.keys() - now
     came = now - held.by_id.keys()
@@ -316,7 +351,8 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
         return None
     new: list[Stored] = []
     if came:
-        query = board_query(held.phase_id, *_summary_columns()).where(e.id.in_(came))
+        query = board_query(held.phase_id, held.board_version, *_summary_columns())
+        query = query.where(e.id.in_(came))
         current = held.environment
         new = [_stored(db, r, current) for r in db.execute(query)]
         if len(new) != len(came):
@@ -336,6 +372,7 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
         held.phase,
         held.phase_id,
         version,
+        held.board_version,
         rows,
         ranks,
         count_groups(db, rows, ranks, alpha=alpha, known=held.ties.p_values),

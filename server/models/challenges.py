@@ -46,7 +46,13 @@ class Phase(Base):
     opens_at: Mapped[datetime | None]
     closes_at: Mapped[datetime | None]
     leaderboard_version: Mapped[int] = mapped_column(Integer, default=0)
-    """Bumped whenever the phase's leaderboard changes: the key of the API's cache."""
+    """Bumped whenever any of the phase's leaderboard rows changes: the key of the snapshots'
+    cache. Not `board_version`, which readers see."""
+    board_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    """Which evaluation of the phase its board shows: moves when a re-evaluation is published
+    (docs/server.md, Re-evaluation); `?version=N` reads an earlier one."""
+    pending_board_version: Mapped[int | None] = mapped_column(Integer)
+    """The version a re-evaluation in progress will publish; None when none is."""
     significance_level: Mapped[float] = mapped_column(Float, default=0.05)
     """The board's tie groups' family-wise level: the suite's phase's `significance_level`."""
 

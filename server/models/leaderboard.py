@@ -25,14 +25,18 @@ class LeaderboardEntry(Base):
     __table_args__ = (
         # owner_key is the user id for regular rows and NULL for baselines: at most one
         # regular row per user and phase, any number of baselines.
-        UniqueConstraint("phase_id", "owner_key"),
+        UniqueConstraint("phase_id", "board_version", "owner_key"),
         # team_id is the team for a team's row (team mode) and NULL otherwise: at most one row
         # per team and phase. A separate key space: a team id never collides with a user id.
-        UniqueConstraint("phase_id", "team_id", name="uq_leaderboard_entries_phase_team"),
+        UniqueConstraint(
+            "phase_id", "board_version", "team_id", name="uq_leaderboard_entries_phase_team"
+        ),
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     phase_id: Mapped[int] = mapped_column(ForeignKey("phases.id", ondelete="CASCADE"))
+    board_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    """The phase's board version this row is on (its submission's)."""
     submission_id: Mapped[int] = mapped_column(
         ForeignKey("submissions.id", ondelete="CASCADE"), unique=True
     )
@@ -64,6 +68,7 @@ class LeaderboardEntry(Base):
 Index(
     "ix_leaderboard_rank",
     LeaderboardEntry.phase_id,
+    LeaderboardEntry.board_version,
     LeaderboardEntry.score.desc(),
     LeaderboardEntry.submitted_at,
     LeaderboardEntry.id,

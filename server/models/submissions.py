@@ -99,6 +99,13 @@ class Submission(Base):
     log_tail: Mapped[str] = mapped_column(Text, default="")
     result: Mapped[dict[str, Any] | None]
     """The evaluator's result document of the current attempt (schema evaluator.results)."""
+    board_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    """The phase's board version this submission counts for (docs/server.md, Re-evaluation)."""
+    reevaluation_of: Mapped[int | None] = mapped_column(Integer, index=True)
+    """The participant's own submission this one re-evaluates for `board_version`; None for a
+    participant's own. No foreign key: SQLite adds one only by rebuilding `submissions`, which
+    cascades into every table that refers to it (alembic 0012); a re-evaluation has its
+    original's owner, and goes with them."""
 
     user: Mapped[User] = relationship(lazy="raise")
     challenge: Mapped[Challenge] = relationship(lazy="raise")

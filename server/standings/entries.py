@@ -9,7 +9,8 @@ Who a row belongs to (docs/server.md, Teams):
   made), whoever of its members made it; a user not in a team has the row of their best
   submission made outside any team or in a dissolved one; a user in a team has no row of their
   own. A dissolved team has no row.
-Baselines are always rows of their own.
+Baselines are always rows of their own. Each board version of a phase (docs/server.md,
+Re-evaluation) has rows of its own, from the submissions that count for it.
 
 Locks: a refresh locks the user's row, then the rows of the teams they submitted in (id order),
 then the phase's row. A caller that refreshes several users locks all of them first (id order),
@@ -41,10 +42,12 @@ from server.models import (
 )
 
 
-def eligible_for(phase_id: int) -> tuple[Any, ...]:
-    """Conditions on a submission that may stand on the phase's board (as a row or a record)."""
+def eligible_for(phase_id: int, board_version: int) -> tuple[Any, ...]:
+    """Conditions on a submission that may stand on this version of the phase's board (as a
+    row or a record)."""
     return (
         Submission.phase_id == phase_id,
+        Submission.board_version == board_version,
         Submission.state == State.SUCCEEDED,
         Submission.public.is_(True),
         Submission.hidden.is_(False),
@@ -77,8 +80,8 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
     # still hold a baseline row of the user's.
     _clear_user(db, phase_id=phase_id, user_id=user_id)
     if team_mode:
-        teams = db.scalars(
-            select(Submission.team_id)
+        teams = db.execute(
+            select(Submission.team_id, Submission.board_version)
             .where(
                 Submission.phase_id == phase_id,
                 Submission.user_id == user_id,
@@ -86,10 +89,23 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
             )
             .distinct()
         ).all()
-        for team_id in sorted(t for t in teams if t is not None):
-            _refresh_team(db, phase_id=phase_id, team_id=team_id)
-    _fill_user(db, phase_id=phase_id, user_id=user_id, username=username, team_mode=team_mode)
-    _moved(db, phase_id)
+        for team_id, version in sorted((t, v) for t, v in teams if t is not None):
+            _refresh_team(db, phase_id=phase_id, team_id=team_id, board_version=version)
+    versions = db.scalars(
+        select(Submission.board_version)
+        .where(Submission.phase_id == phase_id, Submission.user_id == user_id)
+        .distinct()
+    ).all()
+    for version in sorted(versions):
+        _fill_user(
+            db,
+            phase_id=phase_id,
+            board_version=version,
+            user_id=user_id,
+            username=username,
+            team_mode=team_mode,
+        )
+    moved(db, phase_id)
     db.flush()
 
 
@@ -103,10 +119,12 @@ def _clear_user(db: DB, *, phase_id: int, user_id: int) -> None:
     )
 
 
-def _fill_user(db: DB, *, phase_id: int, user_id: int, username: str, team_mode: bool) -> None:
+def _fill_user(
+    db: DB, *, phase_id: int, board_version: int, user_id: int, username: str, team_mode: bool
+) -> None:
     eligible = db.scalars(
         select(Submission)
-        .where(*eligible_for(phase_id), Submission.user_id == user_id)
+        .where(*eligible_for(phase_id, board_version), Submission.user_id == user_id)
         .order_by(*_BEST)
     ).all()
     chosen = [s for s in eligible if s.baseline]
@@ -130,11 +148,13 @@ def _dissolved(db: DB, *, team_ids: set[int]) -> set[int | None]:
     return set(found)
 
 
-def _refresh_team(db: DB, *, phase_id: int, team_id: int) -> None:
+def _refresh_team(db: DB, *, phase_id: int, team_id: int, board_version: int) -> None:
     team = db.scalar(select(Team).where(Team.id == team_id).with_for_update(key_share=True))
     db.execute(
         delete(LeaderboardEntry).where(
-            LeaderboardEntry.phase_id == phase_id, LeaderboardEntry.team_id == team_id
+            LeaderboardEntry.phase_id == phase_id,
+            LeaderboardEntry.board_version == board_version,
+            LeaderboardEntry.team_id == team_id,
         )
     )
     if team is None or team.dissolved_at is not None:
@@ -143,7 +163,9 @@ def _refresh_team(db: DB, *, phase_id: int, team_id: int) -> None:
         select(Submission, User.username)
         .join(User, User.id == Submission.user_id)
         .where(
-            *eligible_for(phase_id), Submission.team_id == team_id, Submission.baseline.is_(False)
+            *eligible_for(phase_id, board_version),
+            Submission.team_id == team_id,
+            Submission.baseline.is_(False),
         )
         .order_by(*_BEST)
         .limit(1)
@@ -158,6 +180,7 @@ def _entry(
     assert submission.score is not None
     return LeaderboardEntry(
         phase_id=submission.phase_id,
+        board_version=submission.board_version,
         submission_id=submission.id,
         user_id=submission.user_id,
         owner_key=owner_key,
@@ -210,7 +233,7 @@ def rebuild(db: DB, *, challenge_id: int) -> None:
         ).all()
         for user_id in sorted(users):
             refresh(db, phase_id=phase_id, user_id=user_id)
-        _moved(db, phase_id)
+        moved(db, phase_id)
     db.flush()
 
 
@@ -280,7 +303,7 @@ def packed_outcomes(db: DB, *, submission: Submission) -> dict[str, Any] | None:
     return PackedOutcomes.of(outcomes, condition=condition).as_json()
 
 
-def _moved(db: DB, phase_id: int) -> None:
+def moved(db: DB, phase_id: int) -> None:
     """The phase's board changed: readers keyed on its version read it again."""
     db.execute(
         update(Phase)

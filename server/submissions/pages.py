@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Annotated, Any
+from urllib.parse import urlencode
 
 from fastapi import APIRouter, Form, Query, Request
 from fastapi.responses import Response
@@ -17,12 +18,14 @@ from sqlalchemy.orm import Session as DB
 
 from server.accounts.deps import PostedDep, ViewerDep
 from server.challenges.charts import TaskSuccess, success_bars
+from server.challenges.service import get_challenge, shown_phase
 from server.kit.deps import DBDep, Id
 from server.kit.errors import Forbidden
 from server.kit.pages import Viewer, redirect, render, signed_in
 from server.models import EpisodeResultRow, State, Submission, User
 from server.submissions.deps import services
 from server.submissions.position import queue_out
+from server.submissions.reevaluation import reevaluations_of, start_reevaluation
 from server.submissions.service import (
     cancel,
     condition_means,
@@ -35,6 +38,7 @@ from server.submissions.service import (
     rerun,
     task_rows,
     transitions_of,
+    visible_to,
 )
 from server.submissions.trajectories import may_download_trajectories, trajectories_of
 from server.submissions.video_store import VideoStore
@@ -45,6 +49,36 @@ router = APIRouter(include_in_schema=False)
 EPISODES_PER_PAGE = 100
 ENDED_BADLY = frozenset({State.FAILED, State.ERROR, State.TIMED_OUT, State.CANCELLED})
 PageNo = Annotated[int, Query(ge=1, le=100_000)]
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One evaluation of a board entry on one board version (docs/server.md, Re-evaluation)."""
+
+    submission: Submission
+    this: bool
+    suite_version: int | None
+    suite_sha256: str | None
+    provenance: Any
+
+
+def evaluations(db: DB, s: Submission, who: Viewer) -> list[Evaluation]:
+    """The submission and its evaluations on other board versions that `who` may see, by
+    version; empty when it has none."""
+    others = [o for o in reevaluations_of(db, submission=s) if visible_to(o, who.user)]
+    if not others:
+        return []
+    shown = sorted([s, *others], key=lambda o: (o.board_version, o.id))
+    return [
+        Evaluation(
+            submission=o,
+            this=o.id == s.id,
+            suite_version=((o.result or {}).get("suite") or {}).get("version"),
+            suite_sha256=((o.result or {}).get("suite") or {}).get("sha256"),
+            provenance=provenance_of(o),
+        )
+        for o in shown
+    ]
 
 
 @dataclass(frozen=True)
@@ -90,6 +124,7 @@ def outcome(
         "chart": success_bars(chart_rows) if rows and complete else None,
         "conditions": condition_means(rows),
         "provenance": provenance_of(s),
+        "evaluations": evaluations(db, s, who),
         "episodes": episodes,
         "episode_total": episode_total,
         "episode_page": episode_page,
@@ -200,3 +235,17 @@ def baseline_action(
     submission_id: Id, request: Request, who: PostedDep, db: DBDep, baseline: Flag
 ) -> Response:
     return _edit(request, who, db, submission_id, admin=True, baseline=baseline == "true")
+
+
+@router.post("/challenges/{slug}/reevaluate")
+def reevaluate_action(
+    slug: str, request: Request, who: PostedDep, db: DBDep, phase: Annotated[str, Form()]
+) -> Response:
+    """An admin re-evaluates a phase's board into a new board version (docs/server.md)."""
+    admin = _admin(request, who)
+    challenge = get_challenge(db, slug=slug)
+    target = shown_phase(challenge, name=phase)
+    start_reevaluation(db, admin=admin, challenge=challenge, phase=target)
+    db.commit()
+    services(request).dispatcher.dispatch()
+    return redirect(f"/challenges/{challenge.slug}/leaderboard?{urlencode({'phase': target.name})}")

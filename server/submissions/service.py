@@ -35,6 +35,7 @@ from server.models import (
     utcnow,
 )
 from server.standings.entries import refresh
+from server.standings.versions import publish_when_done
 from server.submissions.changes import changed
 from server.submissions.method import Method
 from server.submissions.states import new_attempt, transition
@@ -144,6 +145,7 @@ def submit(
         state=State.QUEUED,
         reason="waiting for a worker",
         attempt=1,
+        board_version=phase.pending_board_version or phase.board_version,
         created_at=now,
         updated_at=now,
     )
@@ -255,6 +257,8 @@ def edit(
     db.flush()
     changed(db, submission.id)  # open views check again who may see it
     refresh(db, phase_id=submission.phase_id, user_id=submission.user_id)
+    if hidden:  # a re-evaluation hidden after an error holds its version no longer
+        publish_when_done(db, phase_id=submission.phase_id)
 
 
 def rerun(db: DB, *, admin: User, submission: Submission, now: datetime | None = None) -> None:

@@ -17,6 +17,7 @@ from sqlalchemy.orm import Session as DB
 
 from server.models import FINAL_STATES, Cause, Outbox, State, Submission, Transition, utcnow
 from server.standings.entries import refresh
+from server.standings.versions import published_after_end
 from server.submissions.changes import changed
 
 # Which states each state may move to (re-run, a new attempt, is separate: final -> queued).
@@ -89,6 +90,8 @@ def transition(
     )
     db.flush()
     changed(db, submission_id)
+    if to.final:
+        published_after_end(db, submission_id=submission_id)
     return True
 
 

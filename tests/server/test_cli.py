@@ -101,3 +101,61 @@ def test_production_settings_error_is_clear(monkeypatch: pytest.MonkeyPatch) -> 
     r = runner.invoke(app, ["db", "upgrade"])
     assert r.exit_code == 2
     assert "MANIEVAL_SECRET_KEY" in r.output
+
+
+def loaded_with_an_entry(env: Path) -> int:
+    """server-tiny loaded by the CLI, its dev board holding one succeeded submission."""
+    from server.models import Phase
+    from testkit.factories import make_user
+    from tests.web.helpers import finished
+
+    assert runner.invoke(app, ["challenge", "load", str(SUITE)]).exit_code == 0
+    with db_session(env) as db:
+        challenge = db.scalar(select(Challenge).options(selectinload(Challenge.phases)))
+        assert challenge is not None
+        done = finished(db, make_user(db, "alice"), challenge, [True, False])
+        assert db.scalar(select(Phase.board_version).where(Phase.id == done.phase_id)) == 1
+        return done.id
+
+
+def test_challenge_reevaluate_queues_every_entry_into_the_next_board_version(env: Path) -> None:
+    from server.models import Phase, Submission
+
+    original = loaded_with_an_entry(env)
+    r = runner.invoke(app, ["challenge", "reevaluate", "server-tiny", "--phase", "dev"])
+    assert r.exit_code == 0, r.output
+    assert "phase dev: 1 entries queued for board version 2" in r.output
+    with db_session(env) as db:
+        copy = db.scalar(select(Submission).where(Submission.reevaluation_of == original))
+        assert copy is not None
+        assert copy.board_version == 2
+        pending = db.scalar(select(Phase.pending_board_version).where(Phase.name == "dev"))
+        assert pending == 2
+    again = runner.invoke(app, ["challenge", "reevaluate", "server-tiny"])
+    assert again.exit_code == 1
+    assert "being re-evaluated already (into board version 2)" in again.output
+
+
+def test_challenge_reevaluate_of_every_phase_skips_those_without_entries(env: Path) -> None:
+    loaded_with_an_entry(env)
+    r = runner.invoke(app, ["challenge", "reevaluate", "server-tiny"])
+    assert r.exit_code == 0, r.output
+    assert "phase dev: 1 entries queued for board version 2" in r.output
+    assert "phase test: no entries, nothing to re-evaluate" in r.output
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        (["challenge", "reevaluate"], 2, "Usage: manieval challenge reevaluate"),
+        (["challenge", "reevaluate", "server-tiny", "--phase"], 2, "requires an argument"),
+        (["challenge", "reevaluate", "no-such"], 1, "no challenge 'no-such'"),
+        (["challenge", "reevaluate", "server-tiny", "--phase", "final"], 1, "has no phase"),
+        (["challenge", "reevaluate", "server-tiny", "--phase", "test"], 1, "no entries"),
+    ],
+)
+def test_challenge_reevaluate_errors(env: Path, args: list[str], code: int, message: str) -> None:
+    assert runner.invoke(app, ["challenge", "load", str(SUITE)]).exit_code == 0
+    r = runner.invoke(app, args)
+    assert r.exit_code == code, r.output
+    assert message in r.output

@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session
 from server.leaderboard import ties
 from server.leaderboard.pages import sort_value
 from server.leaderboard.schemas import LeaderboardRowOut
-from server.leaderboard.service import board_version
+from server.leaderboard.service import phase_versions
 from server.leaderboard.snapshot import Snapshot, Snapshots, advance, read_whole
 from server.leaderboard.stored import csv_safe
 from server.models import Challenge, State, Submission, User, team_of
@@ -111,14 +111,18 @@ def test_an_advanced_snapshot_equals_the_board_read_whole(db: Session, team_mode
     for user in users[:4]:
         _finish(db, rng, user, challenge)
     db.commit()
-    phase_id, version = board_version(db, slug=SLUG, phase=PHASE)
-    held = read_whole(db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version)
+    phase_id, version, _ = phase_versions(db, slug=SLUG, phase=PHASE)
+    held = read_whole(
+        db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version, board_version=1
+    )
     stable = db.get_bind().dialect.name == "postgresql"
     advanced = 0
     for _ in range(40):
         _change(db, rng, users, challenge)
-        phase_id, version = board_version(db, slug=SLUG, phase=PHASE)
-        whole = read_whole(db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version)
+        phase_id, version, _ = phase_versions(db, slug=SLUG, phase=PHASE)
+        whole = read_whole(
+            db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version, board_version=1
+        )
         _sorted(held)  # kept, to be carried over where the rows sorted are the same
         moved = advance(db, held, version=version)
         if moved is not None:
@@ -139,9 +143,14 @@ def test_snapshots_follow_a_changing_board(db: Session) -> None:
     for _ in range(25):
         _change(db, rng, users, challenge)
         got = boards.current_in(db, slug=SLUG, phase=PHASE)
-        phase_id, version = board_version(db, slug=SLUG, phase=PHASE)
+        phase_id, version, _ = phase_versions(db, slug=SLUG, phase=PHASE)
         assert got.version == version
-        assert_same(got, read_whole(db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version))
+        assert_same(
+            got,
+            read_whole(
+                db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version, board_version=1
+            ),
+        )
 
 
 def test_a_rows_json_and_csv_line_are_the_whole_rows(db: Session) -> None:
@@ -153,8 +162,10 @@ def test_a_rows_json_and_csv_line_are_the_whole_rows(db: Session) -> None:
             _finish(db, rng, user, challenge, method=[None, '=1+1, "a"', "plain"][n])
     _flip(db, rng, "baseline")
     db.commit()
-    phase_id, version = board_version(db, slug=SLUG, phase=PHASE)
-    board = read_whole(db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version)
+    phase_id, version, _ = phase_versions(db, slug=SLUG, phase=PHASE)
+    board = read_whole(
+        db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version, board_version=1
+    )
     assert any(board.tied)
     assert None in board.ranks
     lines = list(csv.reader(io.StringIO(board.body(1, 50, "csv").decode())))
@@ -187,8 +198,10 @@ def test_a_row_added_below_regroups_the_rows_above_and_tests_only_the_new_pair(
     # alice 16 and bob 10 of 20, bob's within alice's: p = 2/64 = 0.031, two groups at 0.05.
     _finished(db, make_user(db, "alice"), challenge, [i < 16 for i in range(20)])
     _finished(db, make_user(db, "bob"), challenge, [i < 10 for i in range(20)])
-    phase_id, version = board_version(db, slug=SLUG, phase=PHASE)
-    held = read_whole(db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version)
+    phase_id, version, _ = phase_versions(db, slug=SLUG, phase=PHASE)
+    held = read_whole(
+        db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version, board_version=1
+    )
     assert held.groups == [1, 2]
 
     tested: list[tuple[str, str]] = []
@@ -202,10 +215,12 @@ def test_a_row_added_below_regroups_the_rows_above_and_tests_only_the_new_pair(
     # carol below bob (bob alone 8, carol alone 1: p = 0.039): the last row is the only one
     # that changed, yet Holm's thresholds over two comparisons leave no boundary above it.
     _finished(db, make_user(db, "carol"), challenge, [i in (0, 1, 16) for i in range(20)])
-    phase_id, version = board_version(db, slug=SLUG, phase=PHASE)
+    phase_id, version, _ = phase_versions(db, slug=SLUG, phase=PHASE)
     moved = advance(db, held, version=version)
     tested_by_advance = list(tested)
-    whole = read_whole(db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version)
+    whole = read_whole(
+        db, slug=SLUG, phase=PHASE, phase_id=phase_id, version=version, board_version=1
+    )
     if db.get_bind().dialect.name == "postgresql":
         assert moved is not None
         assert tested_by_advance == [("bob", "carol")]  # alice against bob was kept

@@ -91,7 +91,7 @@ def test_while_one_reader_reads_a_new_version_the_others_serve_the_last_one(
     held = boards.current(sessions, slug="server-tiny", phase="dev")
     db.execute(update(Phase).values(leaderboard_version=Phase.leaderboard_version + 1))
     db.commit()
-    boards._reading.add(("server-tiny", "dev"))  # another thread is reading it now
+    boards._reading.add(("server-tiny", "dev", None))  # another thread is reading it now
     assert boards.current(sessions, slug="server-tiny", phase="dev") is held
     boards._reading.clear()
     assert boards.current(sessions, slug="server-tiny", phase="dev").version == held.version + 1
@@ -104,7 +104,7 @@ def test_while_one_reader_looks_at_the_database_the_others_take_the_snapshot_as_
     boards = Snapshots(max_age=0.0)
     held = boards.current(sessions, slug="server-tiny", phase="dev")
     assert boards.fresh("server-tiny", "dev") is None  # past max_age: to be confirmed
-    boards._reading.add(("server-tiny", "dev"))  # another thread confirms it now
+    boards._reading.add(("server-tiny", "dev", None))  # another thread confirms it now
     assert boards.fresh("server-tiny", "dev") is held  # no thread, no query meanwhile
     boards._reading.clear()
     assert boards.fresh("server-tiny", "dev") is None
