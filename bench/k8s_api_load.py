@@ -2,7 +2,7 @@
 
 Runs `worker.kubernetes.watch.run_as_job` for `--jobs` attempts at once (claimed `--ramp` a
 second), one thread each as a Celery threads pool would, against the API-server double
-(tests/worker/k8s_double.py), which counts every request by verb and resource. The double
+(testkit/k8s_double.py), which counts every request by verb and resource. The double
 plays the cluster: the Job controller starts each Job's pod as it is created, the evaluator
 prints an episode line every `--episode-s` seconds, and after the measured window every Job
 succeeds with a result document (read from its log, as in production). The ManiEval server is
