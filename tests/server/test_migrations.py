@@ -168,9 +168,10 @@ def test_0012_keeps_every_row_and_its_downgrade_keeps_each_boards_current_versio
                 conn.execute(text("SELECT count(*) FROM task_results")).scalar_one(),
                 conn.execute(text("SELECT count(*) FROM transitions")).scalar_one(),
                 sorted(
-                    conn.execute(text("SELECT submission_id, user_id FROM leaderboard_entries"))
-                    .tuples()
-                    .all()
+                    (sid, uid)
+                    for sid, uid in conn.execute(
+                        text("SELECT submission_id, user_id FROM leaderboard_entries")
+                    )
                 ),
             )
 
