@@ -11,6 +11,7 @@ idempotent (`reports.py`).
 from __future__ import annotations
 
 import hmac
+from collections.abc import Callable
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Request, Response
@@ -46,6 +47,7 @@ from server.submissions.video_store import (
     TRAJECTORY_MEDIA_TYPES,
     NotATrajectory,
     NotAVideo,
+    VideoStore,
 )
 from server.submissions.videos import video_store
 from server.submissions.work import assignment, claim_next, end_restarted
@@ -149,44 +151,20 @@ def post_final(
 async def put_video(submission_id: Id, attempt: Id, name: VideoName, request: Request) -> Response:
     """Store an episode video of a running attempt (MP4, named as the evaluator names it, at
     most `max_video_bytes`); 409 once the attempt has ended or been replaced."""
-    if request.headers.get("content-type", "").partition(";")[0].strip() != MEDIA_TYPE:
+    if _media(request) != MEDIA_TYPE:
         raise NotAVideo(f"send the video as {MEDIA_TYPE}")
-    data = await request.body()  # bounded by max_internal_body_bytes before it is read
-    await run_in_threadpool(_store_video, request, submission_id, attempt, name, data)
+    await _keep(request, submission_id, attempt, name, VideoStore.store)
     return Response(status_code=204)
-
-
-def _store_video(
-    request: Request, submission_id: int, attempt: int, name: str, data: bytes
-) -> None:
-    svc = services(request)
-    with svc.sessions() as db:
-        check_running(db, submission_id=submission_id, attempt=attempt)
-    video_store(svc.settings).store(
-        submission_id=submission_id, attempt=attempt, name=name, data=data
-    )
 
 
 @router.put(f"{ATTEMPT}/videos/{{name}}/poster", status_code=204)
 async def put_poster(submission_id: Id, attempt: Id, name: VideoName, request: Request) -> Response:
     """Store the poster (its first frame, JPEG) of a stored video of a running attempt; 409
     once the attempt has ended or been replaced."""
-    if request.headers.get("content-type", "").partition(";")[0].strip() != POSTER_MEDIA_TYPE:
+    if _media(request) != POSTER_MEDIA_TYPE:
         raise NotAVideo(f"send the poster as {POSTER_MEDIA_TYPE}")
-    data = await request.body()  # bounded by max_internal_body_bytes before it is read
-    await run_in_threadpool(_store_poster, request, submission_id, attempt, name, data)
+    await _keep(request, submission_id, attempt, name, VideoStore.store_poster)
     return Response(status_code=204)
-
-
-def _store_poster(
-    request: Request, submission_id: int, attempt: int, name: str, data: bytes
-) -> None:
-    svc = services(request)
-    with svc.sessions() as db:
-        check_running(db, submission_id=submission_id, attempt=attempt)
-    video_store(svc.settings).store_poster(
-        submission_id=submission_id, attempt=attempt, name=name, data=data
-    )
 
 
 @router.put(f"{ATTEMPT}/trajectories/{{name}}", status_code=204)
@@ -196,23 +174,31 @@ async def put_trajectory(
     """Store a task run's trajectory file of a running attempt (`.h5` as HDF5, `.json` as
     JSON, named as the evaluator names them); 409 once the attempt has ended or been
     replaced."""
-    media = request.headers.get("content-type", "").partition(";")[0].strip()
-    if media != TRAJECTORY_MEDIA_TYPES.get(name[name.rfind(".") :]):
+    if _media(request) != TRAJECTORY_MEDIA_TYPES.get(name[name.rfind(".") :]):
         raise NotATrajectory("send a trajectory's .h5 as application/x-hdf5, its .json as JSON")
-    data = await request.body()  # bounded by max_internal_body_bytes before it is read
-    await run_in_threadpool(_store_trajectory, request, submission_id, attempt, name, data)
+    await _keep(request, submission_id, attempt, name, VideoStore.store_trajectory)
     return Response(status_code=204)
 
 
-def _store_trajectory(
-    request: Request, submission_id: int, attempt: int, name: str, data: bytes
+def _media(request: Request) -> str:
+    return request.headers.get("content-type", "").partition(";")[0].strip()
+
+
+async def _keep(
+    request: Request, submission_id: int, attempt: int, name: str, keep: Callable[..., None]
 ) -> None:
-    svc = services(request)
-    with svc.sessions() as db:
-        check_running(db, submission_id=submission_id, attempt=attempt)
-    video_store(svc.settings).store_trajectory(
-        submission_id=submission_id, attempt=attempt, name=name, data=data
-    )
+    """Keep an uploaded file of a running attempt with `keep` (a `VideoStore` method, which
+    checks the name and the content)."""
+    data = await request.body()  # bounded by max_internal_body_bytes before it is read
+
+    def kept() -> None:
+        svc = services(request)
+        with svc.sessions() as db:
+            check_running(db, submission_id=submission_id, attempt=attempt)
+        store = video_store(svc.settings)
+        keep(store, submission_id=submission_id, attempt=attempt, name=name, data=data)
+
+    await run_in_threadpool(kept)
 
 
 @router.get("/attempts/silent")
