@@ -78,9 +78,16 @@ class TrajectoryRecorder:
         self._indices.append(index)
 
     def close(self) -> None:
-        """Close the part's file and mark its episodes with their index in the task run."""
-        self._wrapper.close()
+        """Close the part's file and mark its episodes with their index in the task run; a
+        part no episode was written to (the policy broke before its first) is removed: it
+        has nothing to replay, and its absence must not fail the evaluation."""
+        if self._wrapper is not None:
+            self._wrapper.close()
         json_path = self._path.with_suffix(".json")
+        if not self._indices:
+            self._path.unlink(missing_ok=True)
+            json_path.unlink(missing_ok=True)
+            return
         document = json.loads(json_path.read_text(encoding="utf-8"))
         episodes = document["episodes"]
         if len(episodes) != len(self._indices):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import h5py
@@ -166,3 +167,18 @@ def test_trajectory_names_are_derived_from_the_run_and_refuse_anything_else():
     for condition, env_id in [("../x", "PickCube-v1"), ("nominal", "a/b-v1"), ("n", "NoVersion")]:
         with pytest.raises(ValueError, match="no trajectory name"):
             trajectory_stem(condition=condition, env_id=env_id)
+
+
+def test_a_policy_that_breaks_before_its_first_episode_leaves_no_trajectory_and_no_error(
+    make_policy: Callable[[str], Path], tmp_path: Path
+):
+    """Nothing ran, so nothing is recorded: the evaluation ends as the policy's failure, never
+    as the recorder's (a part with no episode has no JSON to mark)."""
+    crasher = make_policy("import sys\nsys.exit(3)\n")
+    directory = tmp_path / "recorded"
+    result = evaluate(plan(), LocalDirectory(crasher), trajectory_dir=directory)
+    assert result.status == "aborted"
+    assert result.abort is not None
+    assert result.abort.kind == "policy_crashed"
+    assert not list(directory.rglob("*.h5"))
+    assert not list(directory.rglob("*.json"))
