@@ -92,7 +92,9 @@ def test_the_submit_page_leads_from_a_pushed_image_to_a_ranked_submission(
             "succeeded", timeout=EVALUATION_TIMEOUT_MS
         )
         expect(page.locator("#timeline .state").last).to_have_text("succeeded")
-        expect(page.get_by_text(f"{embedded.registry}/webber/my-policy@sha256:")).to_be_visible()
+        pinned = f"{embedded.registry}/webber/my-policy@sha256:"
+        expect(page.get_by_text(pinned).first).to_be_visible()  # what runs...
+        expect(page.locator("#provenance").get_by_text(pinned)).to_be_visible()  # ...and ran
         page.screenshot(path=str(artefacts / "submission-pushed-succeeded.png"), full_page=True)
 
         page.goto(f"{url}/challenges/{CHALLENGE}/leaderboard")
