@@ -30,7 +30,7 @@ from evaluator.runner import (
     run_shard,
 )
 from evaluator.sources import PolicySource
-from evaluator.trajectory import merge_parts
+from evaluator.trajectory import merge_parts, plan_stems
 
 
 def evaluate(
@@ -84,7 +84,7 @@ def evaluate(
             workers, plan, source, shards, options, callback, should_stop, on_output
         )
     if trajectory_dir is not None:
-        merge_parts(plan, trajectory_dir)
+        merge_parts(trajectory_dir, plan_stems(plan))
     provenance = local_provenance(plan, policy_image=source.pinned_image())
     return build_result(plan, source.describe(), outcomes, started=started, provenance=provenance)
 

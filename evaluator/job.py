@@ -43,6 +43,7 @@ POLICY_ENV = "MANIEVAL_POLICY"
 SHARDS_ENV = "MANIEVAL_SHARDS"
 ENDPOINT_DIR_ENV = "MANIEVAL_ENDPOINT_DIR"
 VIDEO_DIR_ENV = "MANIEVAL_VIDEO_DIR"
+TRAJECTORY_DIR_ENV = "MANIEVAL_TRAJECTORY_DIR"
 INDEX_ENV = "JOB_COMPLETION_INDEX"  # set by Kubernetes in every pod of an Indexed Job
 ENDPOINT_DIR = "/run/manieval/endpoint"
 MARK = "MANIEVAL-RESULT"
@@ -171,9 +172,12 @@ def run_job(
     shards: int,
     socket_dir: Path,
     video_dir: Path | None = None,
+    trajectory_dir: Path | None = None,
 ) -> EvaluationResult | ShardReport:
     """Run shard `index` of `shards`; one shard gives the whole result document. Videos (if
-    the plan records any) are written to `video_dir`, a volume the policy's container lacks."""
+    the plan records any) are written to `video_dir`, and every episode's trajectory as a part
+    under `trajectory_dir` (`evaluator.trajectory`; the server merges the shards' parts when
+    the final report comes): volumes the policy's container lacks."""
     if not 0 <= index < shards:
         raise ValueError(f"shard index {index} is not in 0..{shards - 1}")
     started = datetime.now(UTC)
@@ -184,7 +188,9 @@ def run_job(
         socket_dir.mkdir(parents=True, exist_ok=True)
         previous = os.umask(SOCKET_UMASK)
         try:
-            options = RunOptions(socket_dir=socket_dir, video_dir=video_dir)
+            options = RunOptions(
+                socket_dir=socket_dir, video_dir=video_dir, trajectory_dir=trajectory_dir
+            )
             outcome = run_shard(plan, source, present[index], options=options, on_episode=_progress)
         finally:
             os.umask(previous)
@@ -316,6 +322,13 @@ def evaluate_job(
         Path | None,
         typer.Option(envvar=VIDEO_DIR_ENV, help="Write episode videos here (none: no videos)."),
     ] = None,
+    trajectory_dir: Annotated[
+        Path | None,
+        typer.Option(
+            envvar=TRAJECTORY_DIR_ENV,
+            help="Write every episode's trajectory here, as this shard's parts (none: not kept).",
+        ),
+    ] = None,
 ) -> None:
     """Run the evaluation a Kubernetes Job describes; print the outcome for the worker."""
     if threading.current_thread() is threading.main_thread():  # not when called in a test
@@ -334,6 +347,7 @@ def evaluate_job(
         shards=shards,
         socket_dir=endpoint_dir,
         video_dir=video_dir,
+        trajectory_dir=trajectory_dir,
     )
     sys.stderr.flush()
     write_document(document, sys.stdout)

@@ -4,15 +4,16 @@ task run, as `mani_skill.utils.wrappers.RecordEpisode` writes them and
 
 ManiSkill's wrapper records every step the simulator takes (the action applied, after
 clipping, and the env state after it), with no rendering. Each shard writes a part per task
-run; `merge_parts` joins a task run's parts with ManiSkill's `merge_trajectories`, in episode
-order, so the merged file is the same however the episodes were sharded.
+run; `merge_parts` joins a task run's parts as ManiSkill's `merge_trajectories` does, in
+episode order, so the merged file is the same however the episodes were sharded.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -97,26 +98,58 @@ class TrajectoryRecorder:
         json_path.write_text(json.dumps(document, indent=2), encoding="utf-8")
 
 
-def merge_parts(plan: EvaluationPlan, directory: Path) -> list[Path]:
-    """Merge every task run's parts into `<directory>/<stem>.h5` (+ `.json`), episodes in
-    task-run order, and remove the parts; the merged files' paths (runs without parts have
-    none)."""
-    from mani_skill.trajectory.merge_trajectory import merge_trajectories
+def merge_parts(directory: Path, stems: Iterable[str]) -> list[Path]:
+    """Merge each task run's parts (named by its stem) into `<directory>/<stem>.h5` (+ `.json`),
+    episodes in task-run order, and remove the parts; the merged files' paths (runs without
+    parts have none).
 
+    Safe to repeat after a crash: a task run's files appear whole (written aside, then renamed,
+    the `.h5` last), and a run whose `.h5` is there is merged already, so its leftover parts are
+    only removed. That is what lets the server merge the parts Kubernetes pods leave on the
+    video volume when the attempt's final report comes, and again if the report is resent."""
     merged = []
-    for run in plan.runs:
-        stem = run_stem(run)
+    for stem in stems:
         parts = _parts_of(directory / PARTS, stem)
-        if not parts:
-            continue
         target = directory / f"{stem}.h5"
-        merge_trajectories(str(target), [str(p) for p in parts])
+        if parts and not target.is_file():
+            _merge(target, parts)
         for part in parts:
             part.unlink()
             part.with_suffix(".json").unlink()
-        merged.append(target)
+        if parts:
+            merged.append(target)
     _remove_if_empty(directory / PARTS)
     return merged
+
+
+def plan_stems(plan: EvaluationPlan) -> list[str]:
+    """The stems of a plan's task runs, in plan order."""
+    return [run_stem(run) for run in plan.runs]
+
+
+def _merge(target: Path, parts: Sequence[Path]) -> None:
+    """Write the parts' episodes into `target` (+ `.json`) as ManiSkill's `merge_trajectories`
+    does (`mani_skill/trajectory/merge_trajectory.py`: the first part's keys, then every part's
+    episodes renumbered `traj_0..`), with h5py alone: importing ManiSkill's module loads the
+    simulator and torch, which the server, where Kubernetes attempts are merged, never loads."""
+    import h5py
+
+    document: dict[str, Any] = {"episodes": []}
+    aside = target.with_name(f".{target.name}.merging")
+    with h5py.File(aside, "w") as out:
+        for part in parts:
+            meta = json.loads(part.with_suffix(".json").read_text(encoding="utf-8"))
+            for key, value in meta.items():
+                document.setdefault(key, value)
+            with h5py.File(part, "r") as source:
+                for episode in meta["episodes"]:
+                    number = len(document["episodes"])
+                    source.copy(f"traj_{episode['episode_id']}", out, f"traj_{number}")
+                    document["episodes"].append({**episode, "episode_id": number})
+    json_aside = aside.with_suffix(".json.merging")
+    json_aside.write_text(json.dumps(document, indent=2), encoding="utf-8")
+    os.replace(json_aside, target.with_suffix(".json"))
+    os.replace(aside, target)
 
 
 def _parts_of(parts: Path, stem: str) -> Sequence[Path]:

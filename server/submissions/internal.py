@@ -41,6 +41,7 @@ from server.submissions.reports import (
     report_progress,
     report_running,
 )
+from server.submissions.trajectories import merge_written
 from server.submissions.video_store import (
     MEDIA_TYPE,
     POSTER_MEDIA_TYPE,
@@ -131,6 +132,13 @@ def post_progress(submission_id: Id, attempt: Id, body: ProgressReport, db: DBDe
 def post_final(
     submission_id: Id, attempt: Id, body: FinalReport, request: Request, db: DBDep
 ) -> ReportOut:
+    if body.result is not None:  # before the result is committed: a resent report merges again
+        merge_written(
+            video_store(services(request).settings),
+            submission_id=submission_id,
+            attempt=attempt,
+            result=body.result,
+        )
     applied = report_final(
         db,
         submission_id,

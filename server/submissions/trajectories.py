@@ -8,6 +8,8 @@ scenes; anyone else who may see the submission gets 403, everyone else 404.
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Iterator
 from pathlib import Path as FilePath
 from typing import Annotated
 
@@ -16,17 +18,18 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field, ValidationError
 from sqlalchemy.orm import Session
 
-from evaluator.results import EvaluationResult
-from evaluator.trajectory import trajectory_stem
+from evaluator.results import EvaluationResult, TaskResult
+from evaluator.trajectory import PARTS, merge_parts, trajectory_stem
 from server.accounts.deps import CallerDep
 from server.kit.deps import DBDep, Id
 from server.kit.errors import ERROR_RESPONSES, Forbidden, NotFound
 from server.models import Submission, User
 from server.submissions.deps import services
 from server.submissions.service import get_visible
-from server.submissions.video_store import TRAJECTORY_MEDIA_TYPES, VideoStore
+from server.submissions.video_store import TRAJECTORIES, TRAJECTORY_MEDIA_TYPES, VideoStore
 from server.submissions.videos import video_store
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
 TrajectoryName = Annotated[str, Path(min_length=1, max_length=300)]
 
@@ -55,39 +58,69 @@ def may_download_trajectories(submission: Submission, user: User | None) -> bool
 
 def trajectories_of(*, submission: Submission, store: VideoStore) -> list[TrajectoryOut]:
     """The task runs of the current attempt's result whose two files are stored."""
-    if not submission.result:
-        return []
-    try:
-        result = EvaluationResult.model_validate(submission.result)
-    except ValidationError:  # a document of an older format: no trajectories
+    result = _result_of(submission)
+    if result is None:
         return []
     out = []
+    for condition, task, stem in _task_runs(result):
+        files = [
+            store.trajectory_path(
+                submission_id=submission.id, attempt=submission.attempt, name=stem + suffix
+            )
+            for suffix in TRAJECTORY_MEDIA_TYPES
+        ]
+        if None in files:
+            continue
+        base = f"/api/v1/submissions/{submission.id}/trajectories/{stem}"
+        out.append(
+            TrajectoryOut(
+                condition=condition,
+                env_id=task.env_id,
+                episodes=sum(e.failure != "not_run" for e in task.episodes),
+                h5_url=f"{base}.h5",
+                json_url=f"{base}.json",
+                bytes=sum(f.stat().st_size for f in files if f is not None),
+            )
+        )
+    return out
+
+
+def merge_written(
+    store: VideoStore, *, submission_id: int, attempt: int, result: EvaluationResult
+) -> None:
+    """Merge the trajectory parts Kubernetes pods wrote into the attempt's directory (each
+    shard's own, `evaluator.job`) into one file pair per task run, when the attempt's final
+    report brings its result. Repeating it (a resent report) is harmless; a merge that fails
+    costs the trajectories, never the result."""
+    directory = store.attempt_dir(submission_id=submission_id, attempt=attempt) / TRAJECTORIES
+    if not (directory / PARTS).is_dir():
+        return  # uploaded by a worker, or not recorded
+    try:
+        merge_parts(directory, [stem for _c, _t, stem in _task_runs(result)])
+    except (OSError, ValueError, KeyError) as exc:
+        log.warning(
+            "trajectories of submission %s attempt %s not merged: %s", submission_id, attempt, exc
+        )
+
+
+def _result_of(submission: Submission) -> EvaluationResult | None:
+    if not submission.result:
+        return None
+    try:
+        return EvaluationResult.model_validate(submission.result)
+    except ValidationError:  # a document of an older format: no trajectories
+        return None
+
+
+def _task_runs(result: EvaluationResult) -> Iterator[tuple[str, TaskResult, str]]:
+    """Each task run of `result` that has a trajectory name: condition, task and stem."""
     for condition in result.conditions:
         for task in condition.tasks:
             try:
                 stem = trajectory_stem(condition=condition.name, env_id=task.env_id)
             except ValueError:
                 continue
-            files = [
-                store.trajectory_path(
-                    submission_id=submission.id, attempt=submission.attempt, name=stem + suffix
-                )
-                for suffix in TRAJECTORY_MEDIA_TYPES
-            ]
-            if None in files:
-                continue
-            base = f"/api/v1/submissions/{submission.id}/trajectories/{stem}"
-            out.append(
-                TrajectoryOut(
-                    condition=condition.name,
-                    env_id=task.env_id,
-                    episodes=sum(e.failure != "not_run" for e in task.episodes),
-                    h5_url=f"{base}.h5",
-                    json_url=f"{base}.json",
-                    bytes=sum(f.stat().st_size for f in files if f is not None),
-                )
-            )
-    return out
+            yield condition.name, task, stem
 
 
 def downloadable(db: Session, *, submission_id: int, user: User | None) -> Submission:

@@ -24,8 +24,10 @@ from evaluator.trajectory import (
     PARTS,
     TRAJECTORY_NAME,
     TrajectoryRecorder,
+    merge_parts,
     trajectory_stem,
 )
+from testkit.trajectories import episode_indices, write_part
 from tests.evaluator.conftest import HERE, SCRIPTED, episode_records
 
 # PickCube in 20 steps: the scripted policy succeeds on two of these three seeds, so replay
@@ -182,3 +184,30 @@ def test_a_policy_that_breaks_before_its_first_episode_leaves_no_trajectory_and_
     assert result.abort.kind == "policy_crashed"
     assert not list(directory.rglob("*.h5"))
     assert not list(directory.rglob("*.json"))
+
+
+def test_parts_merge_in_episode_order_and_a_repeated_merge_changes_nothing(tmp_path: Path):
+    stem = trajectory_stem(condition="nominal", env_id="PickCube-v1")
+    write_part(tmp_path, stem, first=2, episodes=1)  # written first, merged last
+    write_part(tmp_path, stem, first=0, episodes=2)
+    assert merge_parts(tmp_path, [stem, "nominal--PushCube-v1"]) == [tmp_path / f"{stem}.h5"]
+    assert episode_indices(tmp_path / f"{stem}.h5") == [0, 1, 2]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"{stem}.h5", f"{stem}.json"]
+    before = (tmp_path / f"{stem}.json").read_bytes()
+    assert merge_parts(tmp_path, [stem]) == []
+    assert (tmp_path / f"{stem}.json").read_bytes() == before
+
+
+def test_a_merge_cut_short_after_its_files_appeared_only_removes_the_leftover_parts(
+    tmp_path: Path,
+):
+    """The merged files appear whole or not at all; once there, the parts they were made of are
+    only removed, so a merge repeated after a crash never writes a file of fewer episodes."""
+    stem = trajectory_stem(condition="nominal", env_id="PickCube-v1")
+    write_part(tmp_path, stem, first=0, episodes=2)
+    write_part(tmp_path, stem, first=2, episodes=2)
+    merge_parts(tmp_path, [stem])
+    write_part(tmp_path, stem, first=2, episodes=2)  # the crash left this part behind
+    merge_parts(tmp_path, [stem])
+    assert episode_indices(tmp_path / f"{stem}.h5") == [0, 1, 2, 3]
+    assert not (tmp_path / PARTS).exists()

@@ -13,6 +13,7 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
+from internal_api.schemas import FinalReport
 from server.kit.settings import Settings
 from server.models import State
 from server.submissions.reports import report_final, report_state
@@ -26,6 +27,7 @@ from testkit.factories import (
     result_doc,
     token_for,
 )
+from testkit.trajectories import episode_indices, write_part
 from testkit.workers import server_api, server_app, worker_settings
 from worker.server_api import ServerAPI
 
@@ -234,3 +236,20 @@ def test_trajectories_are_refused_for_attempts_that_do_not_run(
     path = tmp_path / f"{STEM}.h5"
     path.write_bytes(H5)
     assert api.upload_trajectory(running, 2, path) is False
+
+
+def test_parts_a_kubernetes_job_wrote_are_merged_when_the_final_report_comes(
+    api: ServerAPI, running: int, settings: Settings
+) -> None:
+    """Each pod of a sharded Job writes its part into the attempt's directory on the video
+    volume (`evaluator.job`); the final report merges them, and a resent report changes nothing."""
+    directory = settings.data_dir / "videos" / str(running) / "1" / "trajectories"
+    write_part(directory, STEM, first=0, episodes=1)
+    write_part(directory, STEM, first=1, episodes=1)
+    report = FinalReport(state=State.SUCCEEDED, reason="done", result=result_doc([True, False]))
+    assert api.final(running, 1, report) is State.SUCCEEDED
+    assert sorted(p.name for p in directory.iterdir()) == [f"{STEM}.h5", f"{STEM}.json"]
+    assert episode_indices(directory / f"{STEM}.h5") == [0, 1]
+    merged = (directory / f"{STEM}.json").read_bytes()
+    assert api.final(running, 1, report) is State.SUCCEEDED
+    assert (directory / f"{STEM}.json").read_bytes() == merged

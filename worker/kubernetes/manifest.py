@@ -34,6 +34,7 @@ from evaluator.job import (
     JOB_SPEC_FILE_ENV,
     POLICY_ENV,
     SHARDS_ENV,
+    TRAJECTORY_DIR_ENV,
     VIDEO_DIR_ENV,
     EvaluationJob,
 )
@@ -65,6 +66,9 @@ EVALUATION_MOUNT = "/etc/manieval-evaluation"
 """Where the evaluator reads the evaluation (seeds included) from the attempt's Secret."""
 VIDEO_MOUNT = "/run/manieval/videos"
 """Where the evaluator writes episode videos: the attempt's directory of the video volume."""
+TRAJECTORY_MOUNT_DIR = f"{VIDEO_MOUNT}/trajectories"
+"""Where it writes its shard's trajectory parts: the server's layout (`VideoStore`), which
+merges every shard's parts when the attempt's final report comes."""
 MAX_SHARDS = 64
 MAX_PAYLOAD_BYTES = 100_000  # well under a Secret's 1 MiB
 _QUANTITY = re.compile(r"^(\d+(\.\d*)?|\.\d+)([KMGTPE]i|[numkMGTPE]|[eE][+-]?\d+)?$")
@@ -125,8 +129,11 @@ class JobSpec:
     scratch_size: str = "1Gi"
     video_claim: str | None = None
     """A ReadWriteMany PersistentVolumeClaim in the evaluation namespace, on the storage the
-    server reads videos from: the evaluator (never the policy) writes the attempt's videos to
-    its `<submission>/<attempt>` directory. None: the Job records no videos."""
+    server reads videos from: the evaluator (never the policy) writes the attempt's
+    trajectories, and videos if `videos`, to its `<submission>/<attempt>` directory. None: the
+    Job records neither."""
+    videos: bool = False
+    """Whether the plan records videos (written only where there is a `video_claim`)."""
     evaluator_command: tuple[str, ...] = ("manieval", "evaluate-job")
 
     def __post_init__(self) -> None:
@@ -367,7 +374,9 @@ def _evaluator_container(spec: JobSpec) -> dict[str, Any]:
         {"name": "evaluation", "mountPath": EVALUATION_MOUNT, "readOnly": True},
     ]
     if spec.video_claim is not None:
-        env[VIDEO_DIR_ENV] = VIDEO_MOUNT
+        if spec.videos:
+            env[VIDEO_DIR_ENV] = VIDEO_MOUNT
+        env[TRAJECTORY_DIR_ENV] = TRAJECTORY_MOUNT_DIR
         attempt_dir = f"{spec.submission_id}/{spec.attempt}"  # the server's layout
         mounts.append({"name": "videos", "mountPath": VIDEO_MOUNT, "subPath": attempt_dir})
     return {

@@ -38,5 +38,6 @@ def job_spec(settings: WorkerSettings, handed: Assignment) -> JobSpec:
         gpu_tolerations=tuple(tuple(t.items()) for t in settings.k8s_gpu_tolerations),
         priority_class_name=settings.k8s_priority_class,
         image_pull_secrets=settings.k8s_image_pull_secrets,
-        video_claim=settings.k8s_video_claim if handed.plan.videos else None,
+        video_claim=settings.k8s_video_claim,
+        videos=handed.plan.videos > 0,
     )
