@@ -135,10 +135,10 @@ def import_packages(pins: Mapping[str, str | None]) -> dict[str, str]:
 def resolve(suite: Suite) -> Resolution:
     """Import ManiSkill's tasks and the suite's packages, and find each task's provider:
     TaskPackageError names a missing package, a failing one, or a task nobody registers."""
+    versions = import_packages(dict.fromkeys(suite.packages))  # a missing one: said at once
     import gymnasium as gym
     import mani_skill.envs  # noqa: F401  (ManiSkill's own tasks)
 
-    versions = import_packages(dict.fromkeys(suite.packages))
     providers = {}
     for task in suite.tasks:
         if task.env_id not in gym.registry:
