@@ -103,9 +103,12 @@ def test_challenge_load_errors(env: Path, args: list[str], message: str) -> None
 def test_challenge_load_says_which_task_package_is_missing_and_how_to_install_it(
     env: Path,
 ) -> None:
-    r = runner.invoke(app, ["challenge", "load", str(PACKAGED_SUITE)])
+    # Another name than the test package's: an earlier test of this process may have imported it.
+    suite = env / "missing.yaml"
+    suite.write_text(PACKAGED_SUITE.read_text().replace("manieval_test_tasks", "lab_tasks_nowhere"))
+    r = runner.invoke(app, ["challenge", "load", str(suite)])
     assert r.exit_code == 1
-    assert "task package 'manieval_test_tasks' is not installed" in r.output
+    assert "task package 'lab_tasks_nowhere' is not installed" in r.output
     assert "-m pip install" in r.output
 
 
