@@ -76,6 +76,9 @@ class EvaluationPlan(BaseModel):
     """At most this many frames per second of control time (None: a frame after every step)."""
     policy: PolicyResources = PolicyResources()
     """What the policy's container is given (the suite's `policy`: GPUs)."""
+    packages: dict[str, str | None] = {}
+    """The suite's task packages, in import order, each with the version the suite was loaded
+    with (None: not pinned): the evaluator imports them, and refuses another version."""
 
     def records(self, run: TaskRun, index: int) -> bool:
         """Whether episode `index` of task run `run` is recorded as a video."""
@@ -166,4 +169,5 @@ def suite_plan(
         video_size=suite.video_size,
         video_fps=suite.video_fps,
         policy=suite.policy,
+        packages={name: suite.package_versions.get(name) for name in suite.packages},
     )

@@ -20,6 +20,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from evaluator.packages import installed_version
 from evaluator.plan import EvaluationPlan
 from evaluator.results import (
     Environment,
@@ -237,6 +238,7 @@ def local_provenance(plan: EvaluationPlan, *, policy_image: str | None) -> Prove
         policy_image=policy_image,
         machines=[machine()],
         settings=scoring_settings(plan),
+        packages={name: installed_version(name) for name in plan.packages},
     )
 
 

@@ -13,8 +13,9 @@ from evaluator.stats import wilson_interval
 # 1.1: `success_at_end` is null when the suite does not measure it (episodes that stop at the
 # first success); `budget` and each episode's `policy_time_s` say how much time the policy took.
 # 1.2: `provenance` says what produced the numbers (docs/metrics.md, Provenance).
-# A 1.0 or 1.1 document still reads as one, with no provenance.
-RESULT_SCHEMA_VERSION: Literal["1.2"] = "1.2"
+# 1.3: the provenance's `packages`, the suite's task packages with their versions.
+# A 1.0 or 1.1 document still reads as one, with no provenance; a 1.2 one with no packages.
+RESULT_SCHEMA_VERSION: Literal["1.3"] = "1.3"
 
 FailureKind = Literal[
     "invalid_action",
@@ -171,6 +172,11 @@ class Provenance(_Doc):
         min_length=1, description="The distinct machines the shards ran on, in shard order"
     )
     settings: ScoringSettings
+    packages: dict[str, str] = Field(
+        default={},
+        description="The suite's task packages with the version the evaluator imported "
+        "(schema 1.3; empty: the suite names none)",
+    )
     shards: int = Field(default=1, ge=1)
     shard_differences: dict[str, list[str | None]] = Field(
         default={},
@@ -182,7 +188,7 @@ class Provenance(_Doc):
 class EvaluationResult(_Doc):
     """What an evaluation produced: the document the server stores and the CLI prints."""
 
-    schema_version: Literal["1.0", "1.1", "1.2"] = RESULT_SCHEMA_VERSION
+    schema_version: Literal["1.0", "1.1", "1.2", "1.3"] = RESULT_SCHEMA_VERSION
     suite: SuiteRef
     phase: str
     policy: str

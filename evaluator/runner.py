@@ -17,6 +17,7 @@ from evaluator.conditions import ConditionRuntime
 from evaluator.endpoint import PolicyEndpoint, PolicyFailure, PolicyRaised, Stopped
 from evaluator.episode import run_episode
 from evaluator.observation import ObservationKeys
+from evaluator.packages import import_packages
 from evaluator.plan import EvaluationPlan, TaskRun
 from evaluator.results import Abort, EpisodeResult, FailureKind, Video
 from evaluator.sim import (
@@ -280,6 +281,7 @@ def run_shard(
 ) -> ShardOutcome:
     """Start a policy process, run the shard's episodes through it, always stop it. The
     policy's output goes to `on_output` as it comes, when given and its launcher can."""
+    import_packages(plan.packages)  # before the policy starts: a wrong version runs nothing
     outcome = ShardOutcome()
     limits = plan.limits
     endpoint = PolicyEndpoint(

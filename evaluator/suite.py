@@ -5,6 +5,8 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+import re
+from keyword import iskeyword
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -17,6 +19,8 @@ OBS_MODE_PATTERN = r"^[a-z_]+(\+[a-z_]+)*$"  # ManiSkill's modes: state_dict, rg
 FLAT_OBS_MODES = frozenset({"state"})  # one array, no named entries
 # An observation entry's path: names joined by "/", where "*" in a name matches any characters.
 OBS_KEY_PATTERN = r"^[A-Za-z0-9_*\-]+(/[A-Za-z0-9_*\-]+)*$"
+# A module name as `import` takes it: identifiers joined by dots (`my_lab_tasks`, `lab.tasks`).
+MODULE_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$"
 
 
 class SuiteError(ValueError):
@@ -207,6 +211,14 @@ class Suite(_Strict):
     """At most this many frames per second of the episode's control time (None: one frame
     after every step): every k-th step is filmed, k the smallest whole number that keeps the
     rate under it, and the last step always. Not in the hash either."""
+    packages: tuple[str, ...] = ()
+    """Python packages that register the suite's own ManiSkill tasks when imported, in import
+    order (docs/task-packages.md): organizer code, imported by the evaluator before it makes
+    environments, never by a policy."""
+    package_versions: dict[str, str] = {}
+    """Each package's version, as `manieval challenge load` records it (or the suite states it:
+    loading then checks it): in the hash, so that a changed task is another suite. Empty: not
+    pinned yet; otherwise one for every package."""
     policy: PolicyResources = PolicyResources()
     """What the policy's container is given (`policy: {gpus: 1}`). Not in the hash: like the
     service's CPU and memory limits, hardware makes a policy faster or slower, while what it
@@ -227,6 +239,25 @@ class Suite(_Strict):
             raise ValueError(
                 f"video_conditions names no condition of the suite: {', '.join(unknown)} "
                 f"(it has: {', '.join(known)})"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _packages_pinned_together(self) -> Suite:
+        if len(set(self.packages)) != len(self.packages):
+            raise ValueError(f"packages are named twice: {', '.join(self.packages)}")
+        invalid = [p for p in self.packages if not is_module_name(p)]
+        if invalid:
+            raise ValueError(
+                f"packages: not a module name as `import` takes it: {', '.join(map(repr, invalid))}"
+                " (identifiers joined by dots, such as my_lab_tasks: the import name, which may"
+                " differ from the distribution's name on PyPI)"
+            )
+        if self.package_versions and set(self.package_versions) != set(self.packages):
+            raise ValueError(
+                "package_versions gives a version for every package and nothing else "
+                f"(packages: {', '.join(self.packages) or 'none'}; "
+                f"package_versions: {', '.join(self.package_versions)})"
             )
         return self
 
@@ -283,10 +314,23 @@ class Suite(_Strict):
 
 
 # Settings added after suites were first published: part of the hash only when not the default.
-_HASHED_WHEN_SET = ("ignore_terminations", "action_chunks", "observation_keys")
+_HASHED_WHEN_SET = (
+    "ignore_terminations",
+    "action_chunks",
+    "observation_keys",
+    "packages",
+    "package_versions",
+)
 _TASK_HASHED_WHEN_SET = ("instruction",)
 RECORDING = ("videos", "video_conditions", "video_size", "video_fps")
 """The settings that say what is filmed and how: they change no result, so no hash."""
+
+
+def is_module_name(name: str) -> bool:
+    """Whether `import name` could import it: identifiers joined by dots, none a keyword."""
+    return re.fullmatch(MODULE_PATTERN, name) is not None and not any(
+        iskeyword(part) for part in name.split(".")
+    )
 
 
 def load_suite(ref: str | Path) -> Suite:

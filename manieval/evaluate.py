@@ -89,13 +89,14 @@ def evaluate(
     ] = None,
 ) -> None:
     """Evaluate a policy on a benchmark suite and print per-task success rates."""
+    from evaluator.packages import pin
     from evaluator.plan import build_plan
     from evaluator.sources import PolicySourceError
     from evaluator.suite import SuiteError, load_suite
 
     try:
         plan = build_plan(
-            load_suite(suite),
+            pin(load_suite(suite))[0],  # its task packages imported, their versions hashed
             phase,
             tasks=_split(tasks),
             conditions=_split(condition),

@@ -1,5 +1,5 @@
 """Operator commands of the server: `manieval db upgrade`, `manieval admin create`,
-`manieval challenge load`, `manieval challenge teams` and `manieval challenge reevaluate`
+`manieval challenge load`, `challenge packages`, `challenge teams` and `challenge reevaluate`
 (`manieval serve` and `demo` compose
 it with the worker: `manieval/serve.py`)."""
 
@@ -15,7 +15,7 @@ from pydantic import ValidationError
 from rich.console import Console
 from sqlalchemy.orm import Session, sessionmaker
 
-from evaluator.suite import SuiteError
+from evaluator.suite import Suite, SuiteError
 from server.kit.errors import AppError
 from server.kit.settings import Settings
 
@@ -136,7 +136,12 @@ def challenge_load(
     ] = None,
 ) -> None:
     """Create a challenge from a suite, or update the challenge of that name."""
-    from server.challenges.service import ChallengeOptions, load_challenge, policy_refusal
+    from server.challenges.service import (
+        ChallengeOptions,
+        load_challenge,
+        policy_refusal,
+        suite_of,
+    )
 
     s = settings()
     options = ChallengeOptions(
@@ -160,10 +165,12 @@ def challenge_load(
             slug = challenge.slug
             phases = [(p.name, p.seed_commitment) for p in challenge.phases]
             refusal = policy_refusal(challenge, policy_gpus=s.policy_gpus)
+            loaded = suite_of(challenge)
     except (SuiteError, AppError) as exc:
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(1) from None
     console.print(f"challenge {slug} loaded{' (teams)' if teams else ''}")
+    _print_packages(loaded)
     for name, commitment in phases:
         console.print(f"  phase {name}: seed commitment {commitment}")
     if refusal is not None:
@@ -174,6 +181,39 @@ def challenge_load(
             markup=True,
             highlight=False,
         )
+
+
+def _print_packages(suite: Suite) -> None:
+    """Each task package with the version loaded, and the package that registers each task
+    (where ManiSkill is installed here to ask)."""
+    from evaluator import packages
+
+    for name, version in suite.package_versions.items():
+        console.print(f"  package {name} {version}", highlight=False)
+    if suite.packages and packages.simulator_installed():
+        for env_id, provider in packages.resolve(suite).providers.items():
+            console.print(f"  task {env_id}: {provider}", highlight=False)
+
+
+@challenge_app.command("packages")
+def challenge_packages(
+    suite: Annotated[str, typer.Argument(help="Suite file, or the name of a bundled suite.")],
+) -> None:
+    """Import a suite's task packages here, say which one registers each task, and print the
+    `package_versions` line to state in the suite (for a control plane without ManiSkill: run
+    it in the evaluator image). Needs no database."""
+    import json
+
+    from evaluator import packages
+    from evaluator.suite import load_suite
+
+    try:
+        pinned, _ = packages.pin(load_suite(suite))
+        _print_packages(pinned)
+    except SuiteError as exc:
+        console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(1) from None
+    print(f"package_versions: {json.dumps(pinned.package_versions)}")
 
 
 @challenge_app.command("teams")

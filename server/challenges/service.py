@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import json
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -13,6 +14,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import selectinload
 
+from evaluator import packages
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
 from server.kit.errors import Conflict, Invalid, NotFound
 from server.models import Challenge, Phase, utcnow
@@ -48,6 +50,10 @@ def load_challenge(
         raise Invalid("quotas must be at least 1")
     text = Path(suite_ref).read_text() if Path(suite_ref).exists() else None
     suite_yaml = text if text is not None else _bundled_text(suite_ref)
+    stated = suite.package_versions
+    suite, _ = packages.pin(suite)  # TaskPackageError: missing, failing, another version
+    if suite.package_versions != stated:
+        suite_yaml = with_package_versions(suite_yaml, suite.package_versions)
     suite, narrowed = try_out(suite, options)
     if narrowed:
         header = f"# {suite.name} with {', '.join(narrowed)} (a try-out)\n"
@@ -132,6 +138,17 @@ def try_out(suite: Suite, options: ChallengeOptions) -> tuple[Suite, list[str]]:
     if not tasks or not update.get("conditions", True):
         raise Invalid("a try-out keeps at least one task and one condition")
     return Suite.model_validate({**suite.model_dump(), **update}), narrowed
+
+
+def with_package_versions(suite_yaml: str, versions: dict[str, str]) -> str:
+    """The suite's text with the versions its packages were loaded with as its
+    `package_versions`: appended, with the author's comments kept, unless the text has the key
+    (empty), in which case the suite is written out again."""
+    note = "# Recorded by `manieval challenge load`: the task packages' versions where it ran.\n"
+    raw = yaml.safe_load(suite_yaml)
+    if isinstance(raw, dict) and "package_versions" in raw:
+        return note + yaml.safe_dump({**raw, "package_versions": versions}, sort_keys=False)
+    return f"{suite_yaml.rstrip()}\n{note}package_versions: {json.dumps(versions)}\n"
 
 
 def _bundled_text(ref: str | Path) -> str:

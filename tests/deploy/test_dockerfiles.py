@@ -112,6 +112,25 @@ def test_the_images_run_as_the_users_the_pods_name():
     assert effective_user(base, [base]) == f"{POLICY_UID}:{POLICY_UID}"
 
 
+def test_the_task_packages_image_builds_on_a_given_evaluator_under_its_pins_and_user():
+    path = DOCKER / "evaluator" / "task-packages.Dockerfile"
+    (stage,) = stages(path)
+    # No default for the base: the evaluator's digest the service runs is given to the build.
+    assert [i.args for i in instructions(path) if i.keyword in ("ARG", "FROM")] == [
+        "EVALUATOR",
+        "${EVALUATOR}",
+    ]
+    installs = [i.args for i in instructions(path) if "pip install" in i.args]
+    assert installs
+    assert all("cd /app;" in args and "-c constraints.txt" in args for args in installs)
+    assert "ADD" not in [i.keyword for i in instructions(path)]
+    assert effective_user(stage, [stage]) == f"{EVALUATOR_UID}:{SHARED_GID}"
+    evaluator = stages(DOCKER / "evaluator" / "Dockerfile")
+    assert [i for i in stage.instructions if i.keyword == "CMD"] == [
+        i for i in final_stages(evaluator)[-1].instructions if i.keyword == "CMD"
+    ]
+
+
 def test_the_pods_run_the_image_built_for_them():
     # The worker image's command is Celery's worker; the reconciler is one too (with beat).
     for overlay in ("dev", "production"):

@@ -41,7 +41,7 @@ def test_a_result_with_provenance_reads_back_as_it_was_written() -> None:
     result = build_result(plan, IMAGE, [], started=STARTED, provenance=provenance_on())
     again = EvaluationResult.model_validate_json(result.model_dump_json())
     assert again == result
-    assert again.schema_version == "1.2"
+    assert again.schema_version == "1.3"
     assert again.provenance is not None
     assert again.provenance.policy_image == IMAGE
 

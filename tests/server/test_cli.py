@@ -5,16 +5,21 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import yaml
 from sqlalchemy import select
 from sqlalchemy.orm import selectinload
 from typer.testing import CliRunner
 
+from evaluator import packages
+from evaluator.suite import load_suite
 from manieval.cli import app
+from server.challenges.service import suite_of, with_package_versions
 from server.kit.db import make_engine, session_factory
 from server.models import Challenge, User
 from testkit.factories import PASSWORD, SUITE, gpu_suite
 
 runner = CliRunner()
+PACKAGED_SUITE = Path(__file__).resolve().parents[1] / "data" / "task_packages" / "suite.yaml"
 
 
 @pytest.fixture
@@ -93,6 +98,64 @@ def test_challenge_load_errors(env: Path, args: list[str], message: str) -> None
     r = runner.invoke(app, args)
     assert r.exit_code in (1, 2)
     assert message in r.output
+
+
+def test_challenge_load_says_which_task_package_is_missing_and_how_to_install_it(
+    env: Path,
+) -> None:
+    # Another name than the test package's: an earlier test of this process may have imported it.
+    suite = env / "missing.yaml"
+    suite.write_text(PACKAGED_SUITE.read_text().replace("manieval_test_tasks", "lab_tasks_nowhere"))
+    r = runner.invoke(app, ["challenge", "load", str(suite)])
+    assert r.exit_code == 1
+    assert "task package 'lab_tasks_nowhere' is not installed" in r.output
+    assert "-m pip install" in r.output
+
+
+def test_a_control_plane_without_maniskill_loads_a_suite_that_states_its_versions(
+    env: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(packages, "simulator_installed", lambda: False)
+    r = runner.invoke(app, ["challenge", "load", str(PACKAGED_SUITE)])
+    assert r.exit_code == 1
+    assert "manieval challenge packages SUITE" in r.output
+    stated = env / "stated.yaml"
+    text = PACKAGED_SUITE.read_text() + 'package_versions: {manieval_test_tasks: "0.1.0"}\n'
+    stated.write_text(text)
+    r = runner.invoke(app, ["challenge", "load", str(stated)])
+    assert r.exit_code == 0, r.output
+    assert "package manieval_test_tasks 0.1.0" in r.output
+    with db_session(env) as db:
+        challenge = db.scalars(select(Challenge)).one()
+        assert challenge.suite_yaml == text
+        assert suite_of(challenge).sha256() == challenge.suite_hash
+
+
+@pytest.mark.sim
+def test_challenge_load_pins_task_packages_and_names_each_tasks_provider(
+    env: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.syspath_prepend(str(PACKAGED_SUITE.parent))
+    version = packages.installed_version("manieval_test_tasks")
+    r = runner.invoke(app, ["challenge", "packages", str(PACKAGED_SUITE)])
+    assert r.exit_code == 0, r.output
+    assert f'package_versions: {{"manieval_test_tasks": "{version}"}}' in r.stdout
+    r = runner.invoke(app, ["challenge", "load", str(PACKAGED_SUITE)])
+    assert r.exit_code == 0, r.output
+    assert f"package manieval_test_tasks {version}" in r.output
+    assert "task KeepCubeInRing-v1: manieval_test_tasks" in r.output
+    with db_session(env) as db:
+        challenge = db.scalars(select(Challenge)).one()
+        assert challenge.suite_yaml.startswith(PACKAGED_SUITE.read_text())  # comments kept
+        suite = suite_of(challenge)
+        assert suite.package_versions == {"manieval_test_tasks": version}
+        assert suite.sha256() == challenge.suite_hash != load_suite(PACKAGED_SUITE).sha256()
+
+
+def test_versions_replace_an_empty_package_versions_of_the_text() -> None:
+    text = "name: x\npackages: [lab]\npackage_versions: {}\n"
+    pinned = yaml.safe_load(with_package_versions(text, {"lab": "1.0"}))
+    assert pinned == {"name": "x", "packages": ["lab"], "package_versions": {"lab": "1.0"}}
 
 
 def test_production_settings_error_is_clear(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -47,6 +47,11 @@ def add_challenge(settings: Settings, name: str, **replace: str) -> None:
         assert old in source, old
         source = source.replace(old, new)
     suite.write_text(source)
+    load_suite_file(settings, suite)
+
+
+def load_suite_file(settings: Settings, suite: Path) -> None:
+    """Load a suite file as a challenge of the server's database, as `challenge load` does."""
     from server.kit.db import make_engine, session_factory
 
     engine = make_engine(settings.resolved_database_url)

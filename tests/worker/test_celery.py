@@ -29,6 +29,7 @@ from sqlalchemy import create_engine, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 import evaluator.bundled
+from evaluator import packages
 from internal_api.tasks import RECONCILE
 from manieval.service import Service
 from server.kit.settings import Settings
@@ -42,6 +43,7 @@ from tests.worker.celery_workers import (
     WORKER_KEYS,
     add_challenge,
     celery_worker,
+    load_suite_file,
     wait_ready,
     worker_environment,
 )
@@ -49,6 +51,7 @@ from tests.worker.redis_server import Redis, free_port
 
 pytestmark = [pytest.mark.sim, pytest.mark.long]
 REPO = Path(__file__).resolve().parents[2]
+TASK_PACKAGES = REPO / "tests" / "data" / "task_packages"
 FINAL = {"succeeded", "failed", "error", "cancelled", "timed_out"}
 STOP_S = 120.0  # a cancelled or lost run is left well within this (it would run for minutes)
 
@@ -338,6 +341,28 @@ def test_a_worker_without_database_or_secrets_ends_submissions_in_every_state(
     for sid in (succeeded, failed, timed_out, error):
         assert str(cluster.submission(sid).worker).endswith(f"-{worker.pid}")
     assert not list((cluster.work / "worker-0" / "spool").glob("*.json"))  # all delivered
+
+
+def test_a_task_packages_task_is_evaluated_ranked_and_its_version_recorded(
+    cluster: Cluster, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The test task package is a plain directory on the path of whoever loads or evaluates the
+    # suite: the server, which checks its tasks, and the worker's evaluator (never the policy).
+    monkeypatch.syspath_prepend(str(TASK_PACKAGES))
+    load_suite_file(cluster.settings, TASK_PACKAGES / "suite.yaml")
+    path = os.pathsep.join(filter(None, [str(TASK_PACKAGES), os.environ.get("PYTHONPATH")]))
+    cluster.start_worker(PYTHONPATH=path)
+    sid = cluster.submit("packaged-tiny")
+
+    body = cluster.wait_state(sid, FINAL)
+    assert body["state"] == "succeeded", body
+    assert [(t["env_id"], t["episodes_ran"], t["success_rate"]) for t in body["tasks"]] == [
+        ("KeepCubeInRing-v1", 2, 1.0)  # its own rule: a still arm keeps the cube in the ring
+    ]
+    version = packages.installed_version("manieval_test_tasks")
+    assert body["provenance"]["packages"] == {"manieval_test_tasks": version}
+    board = cluster.api.get("/challenges/packaged-tiny/leaderboard").json()
+    assert [row["submission_id"] for row in board["items"]] == [sid]
 
 
 def test_a_cancel_mid_run_stops_the_worker_and_stays_cancelled(cluster: Cluster) -> None:
