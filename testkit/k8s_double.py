@@ -5,9 +5,12 @@ batch/v1 Jobs (create, read, list by label with pagination, delete with a propag
 core/v1 pods (list by label, read a container's log), events (list by involved object) and
 ResourceQuotas (listed with what they use, as the quota controller reports it).
 Created Jobs are checked against the official schema, strictly, as the real server's validation
-would refuse them. Tests play the
-Job controller and the kubelet (`run`, `succeed`, `fail`, `exceed_deadline`), queue faults for
-the next matching requests, and inspect every request received.
+would refuse them. Tests play the Job controller and the kubelet (`run`, `succeed`, `fail`,
+`exceed_deadline`), queue faults for the next matching requests, and inspect every request
+received. The cluster keeps its own time (`clock`, `testkit.k8s_clock`): a Job's startTime is
+set when it is created, and when a test advances the clock (`advance`) past startTime +
+activeDeadlineSeconds, the controller fails the Job with reason DeadlineExceeded, in the order
+of its version (`controller`).
 
 Where the real server behaves in a way that surprises clients, the double does the same: a
 foreground deletion answers with the Job itself (not a Status), batch/v1 deletes without a
@@ -49,7 +52,7 @@ from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Concatenate, Literal, ParamSpec, TypeVar
 from urllib.parse import parse_qs, urlsplit
@@ -57,6 +60,12 @@ from urllib.parse import parse_qs, urlsplit
 import kubernetes_validate
 from kubernetes.client import ApiClient, Configuration
 
+from testkit.k8s_clock import (
+    DEADLINE_EXCEEDED,
+    DEADLINE_MESSAGE,
+    ClusterClock,
+    past_active_deadline,
+)
 from worker.kubernetes.client import Backoff, KubernetesExecutor, no_client_retries
 from worker.kubernetes.manifest import EVALUATOR, INDEX_LABEL, job_name
 
@@ -76,7 +85,7 @@ _EVENTS = re.compile(r"^/api/v1/namespaces/([^/]+)/events$")
 _SECRETS = re.compile(r"^/api/v1/namespaces/([^/]+)/secrets$")
 _QUOTAS = re.compile(r"^/api/v1/namespaces/([^/]+)/resourcequotas$")
 _TERMINAL = ("Succeeded", "Failed")
-_EPOCH = datetime(2026, 1, 1, tzinfo=UTC)
+_STAMP = "%Y-%m-%dT%H:%M:%SZ"
 _KINDS = {"jobs": ("Job", "batch/v1"), "pods": ("Pod", "v1")}
 _WATCHING = ("1", "true")
 P = ParamSpec("P")
@@ -177,8 +186,10 @@ class ApiServerDouble:
     """Seconds between looks for changes made by editing `jobs` or `pods` directly."""
     history_limit: int = 100_000
     """Events kept for watches to resume from; older versions answer 410 Gone."""
+    clock: ClusterClock = field(default_factory=ClusterClock)
+    """The cluster's time (`testkit.k8s_clock`): timestamps, Jobs' startTime and deadlines.
+    Tests move it with `advance`, never by waiting."""
     lock: threading.RLock = field(default_factory=threading.RLock)
-    _clock: int = 0
     _version: int = 1  # the cluster's history began before the test: never "0" (any)
     _compacted: int = 0
     _expiries: int = 0
@@ -262,7 +273,8 @@ class ApiServerDouble:
                     continue
                 pods.append(self._add_pod(job, index, ready=ready))
             count = len(pods)
-            job["status"].update(active=count, ready=count if ready else 0, startTime=self._now())
+            job["status"].update(active=count, ready=count if ready else 0)
+            job["status"].setdefault("startTime", self._now())  # a Job a test stored as it is
             return pods
 
     @_publishes
@@ -317,17 +329,42 @@ class ApiServerDouble:
             self._conclude(job, "FailureTarget", "Failed", reason, message)
 
     @_publishes
-    def exceed_deadline(self, namespace: str, name: str) -> None:
-        """activeDeadlineSeconds passed: the controller deletes the running pods (failed ones
-        stay), fails the Job."""
+    def advance(self, seconds: float) -> None:
+        """Let `seconds` pass on the cluster's clock. The Job controller syncs a Job again when
+        its deadline is due (`jm.queue.AddAfter(key, syncDuration)` in `syncJob`,
+        pkg/controller/job/job_controller.go): every Job past its deadline fails now."""
         with self.lock:
-            for pod in self._pods_of(namespace, name):
-                if pod["status"]["phase"] != "Failed":
-                    self._end_pod(pod)
+            self.clock.advance(seconds)
+            for job in list(self.jobs.values()):
+                if past_active_deadline(job, self.clock.now()):
+                    self._deadline_exceeded(job)
+
+    @_publishes
+    def exceed_deadline(self, namespace: str, name: str) -> None:
+        """The clock reaches the Job's deadline (startTime + activeDeadlineSeconds, `advance`)
+        and the controller fails it; a Job without a deadline is failed so all the same."""
+        with self.lock:
             job = self.jobs[(namespace, name)]
-            job["status"].update(active=0, ready=0, failed=1)
-            message = "Job was active longer than specified deadline"
-            self._conclude(job, "FailureTarget", "Failed", "DeadlineExceeded", message)
+            deadline = job["spec"].get("activeDeadlineSeconds")
+            started = (job.get("status") or {}).get("startTime")
+            if deadline is not None and started is not None:
+                due = datetime.strptime(started, _STAMP).replace(tzinfo=UTC)
+                waited = (due - self.clock.now()).total_seconds() + deadline
+                self.clock.advance(max(0.0, waited))
+            self._deadline_exceeded(job)
+
+    def _deadline_exceeded(self, job: Json) -> None:
+        """`syncJob` past `pastActiveDeadline`: a failure condition with reason
+        DeadlineExceeded (`newFailureCondition`: FailureTarget first when
+        `delayTerminalCondition()`, from 1.31; Failed at once before), and the running pods
+        deleted (`deleteActivePods`: terminating under their finalizer until `settle` from
+        1.31); pods that failed before stay."""
+        meta = job["metadata"]
+        for pod in self._pods_of(meta["namespace"], meta["name"]):
+            if pod["status"]["phase"] != "Failed":
+                self._end_pod(pod)
+        job["status"].update(active=0, ready=0, failed=1)
+        self._conclude(job, "FailureTarget", "Failed", DEADLINE_EXCEEDED, DEADLINE_MESSAGE)
 
     @_publishes
     def evict(
@@ -911,6 +948,10 @@ class ApiServerDouble:
         template_meta.setdefault("labels", {}).update(controller | names)
         job["spec"]["selector"] = {"matchLabels": {"batch.kubernetes.io/controller-uid": uid}}
         job["status"] = {}
+        if not job["spec"].get("suspend"):
+            # The controller's first sync of the Job ("Job first start" in `syncJob`): its
+            # deadline counts from here, scheduling and image pulls included.
+            job["status"]["startTime"] = self._now()
         self.jobs[(namespace, meta["name"])] = job
         return job
 
@@ -1013,8 +1054,7 @@ class ApiServerDouble:
         return None
 
     def _now(self) -> str:
-        self._clock += 1
-        return (_EPOCH + timedelta(seconds=self._clock)).strftime("%Y-%m-%dT%H:%M:%SZ")
+        return self.clock.stamp()
 
     @staticmethod
     def _in(store: dict[tuple[str, str], Json], namespace: str) -> list[Json]:
@@ -1283,10 +1323,12 @@ def _selects(selector: str, labels: dict[str, str]) -> bool:
 
 
 @contextmanager
-def running_apiserver(controller: Controller = "1.31") -> Iterator[ApiServerDouble]:
+def running_apiserver(
+    controller: Controller = "1.31", *, clock: ClusterClock | None = None
+) -> Iterator[ApiServerDouble]:
     """A started double, shut down afterwards (wrap it in a fixture), its Job controller
-    ending Jobs as `controller`'s does."""
-    with ApiServerDouble(controller=controller) as double:
+    ending Jobs as `controller`'s does, on `clock` (a fresh one by default)."""
+    with ApiServerDouble(controller=controller, clock=clock or ClusterClock()) as double:
         yield double
 
 
