@@ -53,12 +53,14 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from decimal import Decimal
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Concatenate, Literal, ParamSpec, TypeVar
 from urllib.parse import parse_qs, urlsplit
 
 import kubernetes_validate
 from kubernetes.client import ApiClient, Configuration
+from kubernetes.utils import parse_quantity
 
 from testkit.k8s_clock import (
     DEADLINE_EXCEEDED,
@@ -166,6 +168,12 @@ class ApiServerDouble:
     """A ResourceQuota's `count/jobs.batch`: creating a Job beyond it answers 403."""
     pod_quota: int | None = None
     """A ResourceQuota's `pods`: the controller's pod creations beyond it are refused."""
+    compute_quota: dict[str, str] = field(default_factory=dict)
+    """A ResourceQuota's compute resources (`requests.cpu`, `limits.memory`, `cpu`, ...):
+    the controller's pod creations beyond it are refused. A pod counts its containers' requests
+    or limits and its RuntimeClass's overhead (`_pod_usage`)."""
+    runtime_classes: dict[str, dict[str, str]] = field(default_factory=dict)
+    """RuntimeClasses by name, each with its `overhead.podFixed` (cpu, memory)."""
     quotas_readable: bool = True
     """False: listing ResourceQuotas is forbidden (403), as with a Role that does not grant it."""
     on_create: Callable[[str, str], object] | None = None
@@ -268,8 +276,9 @@ class ApiServerDouble:
             job = self.jobs[(namespace, name)]
             pods = []
             for index in _indexes(job):
-                if self.pod_quota is not None and self._live_pods(namespace) >= self.pod_quota:
-                    self._quota_refused_pod(job)
+                refusal = self._quota_refusal(namespace, job["spec"]["template"]["spec"])
+                if refusal is not None:
+                    self._quota_refused_pod(job, refusal)
                     continue
                 pods.append(self._add_pod(job, index, ready=ready))
             count = len(pods)
@@ -899,13 +908,28 @@ class ApiServerDouble:
             if not self.gc_paused:
                 self.collect_garbage()
 
-    def _quota_refused_pod(self, job: Json) -> None:
+    def _quota_refusal(self, namespace: str, pod_spec: Json) -> str | None:
+        """Why the quota refuses one more pod like `pod_spec` (`requested: ..., used: ...,
+        limited: ...`, as the quota admission plugin says it), or None when it fits."""
+        if self.pod_quota is not None and self._live_pods(namespace) >= self.pod_quota:
+            used = self._live_pods(namespace)
+            return f"requested: pods=1, used: pods={used}, limited: pods={self.pod_quota}"
+        wanted = _pod_usage(self._admitted(pod_spec))
+        used_now = self._compute_used(namespace)
+        for resource, hard in sorted(self.compute_quota.items()):
+            need, used = wanted.get(resource, Decimal(0)), used_now.get(resource, Decimal(0))
+            if used + need > parse_quantity(hard):
+                return (
+                    f"requested: {resource}={_show(need)}, used: {resource}={_show(used)}, "
+                    f"limited: {resource}={hard}"
+                )
+        return None
+
+    def _quota_refused_pod(self, job: Json, refusal: str) -> None:
         meta = job["metadata"]
-        used = self._live_pods(meta["namespace"])
         message = (
             f'Error creating: pods "{meta["name"]}-{uuid.uuid4().hex[:5]}" is forbidden: '
-            f"exceeded quota: eval-quota, requested: pods=1, used: pods={used}, "
-            f"limited: pods={self.pod_quota}"
+            f"exceeded quota: eval-quota, {refusal}"
         )
         now = self._now()
         self.events.append(
@@ -1025,10 +1049,30 @@ class ApiServerDouble:
         pods = self._in(self.pods, namespace)
         return sum(1 for p in pods if (p.get("status") or {}).get("phase") not in _TERMINAL)
 
+    def _admitted(self, pod_spec: Json) -> Json:
+        """The pod's spec as admission leaves it: the RuntimeClass admission plugin sets its
+        class's overhead (`setOverhead` in plugin/pkg/admission/runtimeclass/admission.go)."""
+        overhead = self.runtime_classes.get(pod_spec.get("runtimeClassName") or "")
+        return pod_spec | {"overhead": dict(overhead)} if overhead else pod_spec
+
+    def _compute_used(self, namespace: str) -> dict[str, Decimal]:
+        """What the live pods use of the compute resources, as the quota controller counts."""
+        used: dict[str, Decimal] = {}
+        for pod in self._in(self.pods, namespace):
+            if (pod.get("status") or {}).get("phase") in _TERMINAL:
+                continue
+            for resource, value in _pod_usage(pod.get("spec") or {}).items():
+                used[resource] = used.get(resource, Decimal(0)) + value
+        return used
+
     def _quotas(self, namespace: str) -> list[Json]:
         """`eval-quota` as the quota controller reports it, when the test set one."""
         hard: Json = {}
         used: Json = {}
+        if self.compute_quota:
+            counted = self._compute_used(namespace)
+            hard |= self.compute_quota
+            used |= {r: _show(counted.get(r, Decimal(0))) for r in self.compute_quota}
         if self.pod_quota is not None:
             hard["pods"], used["pods"] = str(self.pod_quota), str(self._live_pods(namespace))
         if self.job_quota is not None:
@@ -1077,6 +1121,7 @@ class ApiServerDouble:
             labels[INDEX_LABEL] = str(index)
             annotations[INDEX_LABEL] = str(index)
         owner = {"apiVersion": "batch/v1", "kind": "Job", "name": job_name, "controller": True}
+        template["spec"] = self._admitted(template["spec"])
         self.pods[(namespace, name)] = {
             "apiVersion": "v1",
             "kind": "Pod",
@@ -1235,6 +1280,29 @@ class _Handler(BaseHTTPRequestHandler):
         self.close_connection = True
 
     do_GET = do_POST = do_DELETE = _serve
+
+
+def _pod_usage(pod_spec: Json) -> dict[str, Decimal]:
+    """What a pod takes from a quota's compute resources: its containers' requests and limits
+    (the policy sidecar's as well: restartable init containers run beside the others) plus its
+    overhead, in both (`PodUsageFunc` in pkg/quota/v1/evaluator/core/pods.go, through
+    `PodRequests` and `PodLimits` of component-helpers/resource/helpers.go); `cpu` and
+    `memory` alone mean the requests."""
+    usage: dict[str, Decimal] = {}
+    containers = [*pod_spec.get("initContainers", []), *pod_spec.get("containers", [])]
+    overhead = pod_spec.get("overhead") or {}
+    for kind in ("requests", "limits"):
+        amounts = [(c.get("resources") or {}).get(kind) or {} for c in containers]
+        for name, value in [(n, v) for a in [*amounts, overhead] for n, v in a.items()]:
+            key = f"{kind}.{name}"
+            usage[key] = usage.get(key, Decimal(0)) + parse_quantity(value)
+    for name in ("cpu", "memory"):
+        usage[name] = usage.get(f"requests.{name}", Decimal(0))
+    return usage
+
+
+def _show(value: Decimal) -> str:
+    return f"{value.normalize():f}"
 
 
 def _indexes(job: Json) -> range:

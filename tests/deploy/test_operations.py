@@ -280,7 +280,11 @@ def test_the_evaluation_job_is_admitted_in_the_evaluation_namespace(
     assert kubernetes_validate.validate(job, "1.30", strict=True)
     assert restricted_violations(pod) == []
     if "runtimeClassName" in pod:
-        one(objects, "RuntimeClass", pod["runtimeClassName"])
+        runtime = one(objects, "RuntimeClass", pod["runtimeClassName"])
+        # The worker counts the overhead the quota counts, or it creates Jobs whose pods the
+        # quota refuses (and makes them again, and again).
+        overhead = worker_settings(overlay, monkeypatch).k8s_runtime_overhead
+        assert overhead == runtime.get("overhead", {}).get("podFixed", {})
     (limit_range,) = find(objects, "LimitRange")
     (limits,) = limit_range["spec"]["limits"]
     for c in containers(pod):

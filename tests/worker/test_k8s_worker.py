@@ -1001,6 +1001,45 @@ def test_a_cancel_while_waiting_for_room_creates_no_job(
     assert [r for r in apiserver.requests if r.method == "POST"] == []
 
 
+def test_a_job_that_fits_the_quota_only_without_its_runtime_class_overhead_waits_for_room(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    """The quota counts the sandbox's overhead in every pod: a worker that left it out would
+    create the Job, see its pod refused, take it back and make it again, round and round."""
+    gvisor = {"cpu": "100m", "memory": "128Mi"}
+    apiserver.runtime_classes["gvisor"] = gvisor
+    sandboxed = k8s_worker(
+        settings, apiserver, k8s_runtime_class="gvisor", k8s_runtime_overhead=gvisor
+    )
+    # Room for the Job's containers (2 CPUs of the evaluator, 1 of the policy) but not for
+    # its overhead on top, beside someone else's pod of 1 CPU.
+    apiserver.compute_quota = {"requests.cpu": "4050m"}
+    other = (NAMESPACE, "someone-else")
+    apiserver.pods[other] = {
+        "metadata": {"name": other[1], "namespace": NAMESPACE, "labels": {}},
+        "spec": {"containers": [{"name": "x", "resources": {"requests": {"cpu": "1"}}}]},
+        "status": {"phase": "Running"},
+    }
+    apiserver.on_create = apiserver.run  # the controller makes the pods at once
+    run = Run(api, sandboxed, committed_sessions)
+    until(lambda: waiting_for_room(committed_sessions, queued.id), "the claim waiting for room")
+    detail = submission_of(committed_sessions, queued.id).progress["detail"]
+    assert detail.startswith("quota eval-quota: requests.cpu 1 used of 4.05, the Job needs 3.1")
+    assert apiserver.created_bodies() == []  # no Job made only for its pod to be refused
+    with apiserver.lock:
+        del apiserver.pods[other]
+    name = job_name(queued.id, 1)
+    until(lambda: apiserver.pods_of(NAMESPACE, name), "the Job made, its pod admitted")
+    assert apiserver.pods_of(NAMESPACE, name)[0]["spec"]["overhead"] == gvisor
+    apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, queued.id)])
+    assert run.wait() == State.SUCCEEDED
+    assert apiserver.events == []  # no pod was ever refused
+
+
 def test_a_cancel_stops_the_job_between_looks(
     committed_sessions: sessionmaker[Session],
     settings: Settings,

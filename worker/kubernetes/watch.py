@@ -202,7 +202,7 @@ class _Watch:
         """Wait until the namespace's quotas have room for the whole Job, beating meanwhile:
         `_ROOM`, `_UNKNOWN` (the quotas cannot be read), or the state the attempt ended in
         (cancelled, or a quota it can never fit)."""
-        needs = demand(build_job(self.spec))
+        needs = demand(build_job(self.spec), overhead=self.settings.k8s_runtime_overhead)
         waiting = False
         while True:
             try:
