@@ -5,9 +5,12 @@ batch/v1 Jobs (create, read, list by label with pagination, delete with a propag
 core/v1 pods (list by label, read a container's log), events (list by involved object) and
 ResourceQuotas (listed with what they use, as the quota controller reports it).
 Created Jobs are checked against the official schema, strictly, as the real server's validation
-would refuse them. Tests play the
-Job controller and the kubelet (`run`, `succeed`, `fail`, `exceed_deadline`), queue faults for
-the next matching requests, and inspect every request received.
+would refuse them. Tests play the Job controller and the kubelet (`run`, `succeed`, `fail`,
+`exceed_deadline`), queue faults for the next matching requests, and inspect every request
+received. The cluster keeps its own time (`clock`, `testkit.k8s_clock`): a Job's startTime is
+set when it is created, and when a test advances the clock (`advance`) past startTime +
+activeDeadlineSeconds, the controller fails the Job with reason DeadlineExceeded, in the order
+of its version (`controller`).
 
 Where the real server behaves in a way that surprises clients, the double does the same: a
 foreground deletion answers with the Job itself (not a Status), batch/v1 deletes without a
@@ -49,14 +52,22 @@ from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime
+from decimal import Decimal
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Concatenate, Literal, ParamSpec, TypeVar
 from urllib.parse import parse_qs, urlsplit
 
 import kubernetes_validate
 from kubernetes.client import ApiClient, Configuration
+from kubernetes.utils import parse_quantity
 
+from testkit.k8s_clock import (
+    DEADLINE_EXCEEDED,
+    DEADLINE_MESSAGE,
+    ClusterClock,
+    past_active_deadline,
+)
 from worker.kubernetes.client import Backoff, KubernetesExecutor, no_client_retries
 from worker.kubernetes.manifest import EVALUATOR, INDEX_LABEL, job_name
 
@@ -76,7 +87,7 @@ _EVENTS = re.compile(r"^/api/v1/namespaces/([^/]+)/events$")
 _SECRETS = re.compile(r"^/api/v1/namespaces/([^/]+)/secrets$")
 _QUOTAS = re.compile(r"^/api/v1/namespaces/([^/]+)/resourcequotas$")
 _TERMINAL = ("Succeeded", "Failed")
-_EPOCH = datetime(2026, 1, 1, tzinfo=UTC)
+_STAMP = "%Y-%m-%dT%H:%M:%SZ"
 _KINDS = {"jobs": ("Job", "batch/v1"), "pods": ("Pod", "v1")}
 _WATCHING = ("1", "true")
 P = ParamSpec("P")
@@ -157,6 +168,12 @@ class ApiServerDouble:
     """A ResourceQuota's `count/jobs.batch`: creating a Job beyond it answers 403."""
     pod_quota: int | None = None
     """A ResourceQuota's `pods`: the controller's pod creations beyond it are refused."""
+    compute_quota: dict[str, str] = field(default_factory=dict)
+    """A ResourceQuota's compute resources (`requests.cpu`, `limits.memory`, `cpu`, ...):
+    the controller's pod creations beyond it are refused. A pod counts its containers' requests
+    or limits and its RuntimeClass's overhead (`_pod_usage`)."""
+    runtime_classes: dict[str, dict[str, str]] = field(default_factory=dict)
+    """RuntimeClasses by name, each with its `overhead.podFixed` (cpu, memory)."""
     quotas_readable: bool = True
     """False: listing ResourceQuotas is forbidden (403), as with a Role that does not grant it."""
     on_create: Callable[[str, str], object] | None = None
@@ -177,8 +194,10 @@ class ApiServerDouble:
     """Seconds between looks for changes made by editing `jobs` or `pods` directly."""
     history_limit: int = 100_000
     """Events kept for watches to resume from; older versions answer 410 Gone."""
+    clock: ClusterClock = field(default_factory=ClusterClock)
+    """The cluster's time (`testkit.k8s_clock`): timestamps, Jobs' startTime and deadlines.
+    Tests move it with `advance`, never by waiting."""
     lock: threading.RLock = field(default_factory=threading.RLock)
-    _clock: int = 0
     _version: int = 1  # the cluster's history began before the test: never "0" (any)
     _compacted: int = 0
     _expiries: int = 0
@@ -257,12 +276,14 @@ class ApiServerDouble:
             job = self.jobs[(namespace, name)]
             pods = []
             for index in _indexes(job):
-                if self.pod_quota is not None and self._live_pods(namespace) >= self.pod_quota:
-                    self._quota_refused_pod(job)
+                refusal = self._quota_refusal(namespace, job["spec"]["template"]["spec"])
+                if refusal is not None:
+                    self._quota_refused_pod(job, refusal)
                     continue
                 pods.append(self._add_pod(job, index, ready=ready))
             count = len(pods)
-            job["status"].update(active=count, ready=count if ready else 0, startTime=self._now())
+            job["status"].update(active=count, ready=count if ready else 0)
+            job["status"].setdefault("startTime", self._now())  # a Job a test stored as it is
             return pods
 
     @_publishes
@@ -317,17 +338,42 @@ class ApiServerDouble:
             self._conclude(job, "FailureTarget", "Failed", reason, message)
 
     @_publishes
-    def exceed_deadline(self, namespace: str, name: str) -> None:
-        """activeDeadlineSeconds passed: the controller deletes the running pods (failed ones
-        stay), fails the Job."""
+    def advance(self, seconds: float) -> None:
+        """Let `seconds` pass on the cluster's clock. The Job controller syncs a Job again when
+        its deadline is due (`jm.queue.AddAfter(key, syncDuration)` in `syncJob`,
+        pkg/controller/job/job_controller.go): every Job past its deadline fails now."""
         with self.lock:
-            for pod in self._pods_of(namespace, name):
-                if pod["status"]["phase"] != "Failed":
-                    self._end_pod(pod)
+            self.clock.advance(seconds)
+            for job in list(self.jobs.values()):
+                if past_active_deadline(job, self.clock.now()):
+                    self._deadline_exceeded(job)
+
+    @_publishes
+    def exceed_deadline(self, namespace: str, name: str) -> None:
+        """The clock reaches the Job's deadline (startTime + activeDeadlineSeconds, `advance`)
+        and the controller fails it; a Job without a deadline is failed so all the same."""
+        with self.lock:
             job = self.jobs[(namespace, name)]
-            job["status"].update(active=0, ready=0, failed=1)
-            message = "Job was active longer than specified deadline"
-            self._conclude(job, "FailureTarget", "Failed", "DeadlineExceeded", message)
+            deadline = job["spec"].get("activeDeadlineSeconds")
+            started = (job.get("status") or {}).get("startTime")
+            if deadline is not None and started is not None:
+                due = datetime.strptime(started, _STAMP).replace(tzinfo=UTC)
+                waited = (due - self.clock.now()).total_seconds() + deadline
+                self.clock.advance(max(0.0, waited))
+            self._deadline_exceeded(job)
+
+    def _deadline_exceeded(self, job: Json) -> None:
+        """`syncJob` past `pastActiveDeadline`: a failure condition with reason
+        DeadlineExceeded (`newFailureCondition`: FailureTarget first when
+        `delayTerminalCondition()`, from 1.31; Failed at once before), and the running pods
+        deleted (`deleteActivePods`: terminating under their finalizer until `settle` from
+        1.31); pods that failed before stay."""
+        meta = job["metadata"]
+        for pod in self._pods_of(meta["namespace"], meta["name"]):
+            if pod["status"]["phase"] != "Failed":
+                self._end_pod(pod)
+        job["status"].update(active=0, ready=0, failed=1)
+        self._conclude(job, "FailureTarget", "Failed", DEADLINE_EXCEEDED, DEADLINE_MESSAGE)
 
     @_publishes
     def evict(
@@ -862,13 +908,28 @@ class ApiServerDouble:
             if not self.gc_paused:
                 self.collect_garbage()
 
-    def _quota_refused_pod(self, job: Json) -> None:
+    def _quota_refusal(self, namespace: str, pod_spec: Json) -> str | None:
+        """Why the quota refuses one more pod like `pod_spec` (`requested: ..., used: ...,
+        limited: ...`, as the quota admission plugin says it), or None when it fits."""
+        if self.pod_quota is not None and self._live_pods(namespace) >= self.pod_quota:
+            used = self._live_pods(namespace)
+            return f"requested: pods=1, used: pods={used}, limited: pods={self.pod_quota}"
+        wanted = _pod_usage(self._admitted(pod_spec))
+        used_now = self._compute_used(namespace)
+        for resource, hard in sorted(self.compute_quota.items()):
+            need, used = wanted.get(resource, Decimal(0)), used_now.get(resource, Decimal(0))
+            if used + need > parse_quantity(hard):
+                return (
+                    f"requested: {resource}={_show(need)}, used: {resource}={_show(used)}, "
+                    f"limited: {resource}={hard}"
+                )
+        return None
+
+    def _quota_refused_pod(self, job: Json, refusal: str) -> None:
         meta = job["metadata"]
-        used = self._live_pods(meta["namespace"])
         message = (
             f'Error creating: pods "{meta["name"]}-{uuid.uuid4().hex[:5]}" is forbidden: '
-            f"exceeded quota: eval-quota, requested: pods=1, used: pods={used}, "
-            f"limited: pods={self.pod_quota}"
+            f"exceeded quota: eval-quota, {refusal}"
         )
         now = self._now()
         self.events.append(
@@ -911,6 +972,10 @@ class ApiServerDouble:
         template_meta.setdefault("labels", {}).update(controller | names)
         job["spec"]["selector"] = {"matchLabels": {"batch.kubernetes.io/controller-uid": uid}}
         job["status"] = {}
+        if not job["spec"].get("suspend"):
+            # The controller's first sync of the Job ("Job first start" in `syncJob`): its
+            # deadline counts from here, scheduling and image pulls included.
+            job["status"]["startTime"] = self._now()
         self.jobs[(namespace, meta["name"])] = job
         return job
 
@@ -984,10 +1049,30 @@ class ApiServerDouble:
         pods = self._in(self.pods, namespace)
         return sum(1 for p in pods if (p.get("status") or {}).get("phase") not in _TERMINAL)
 
+    def _admitted(self, pod_spec: Json) -> Json:
+        """The pod's spec as admission leaves it: the RuntimeClass admission plugin sets its
+        class's overhead (`setOverhead` in plugin/pkg/admission/runtimeclass/admission.go)."""
+        overhead = self.runtime_classes.get(pod_spec.get("runtimeClassName") or "")
+        return pod_spec | {"overhead": dict(overhead)} if overhead else pod_spec
+
+    def _compute_used(self, namespace: str) -> dict[str, Decimal]:
+        """What the live pods use of the compute resources, as the quota controller counts."""
+        used: dict[str, Decimal] = {}
+        for pod in self._in(self.pods, namespace):
+            if (pod.get("status") or {}).get("phase") in _TERMINAL:
+                continue
+            for resource, value in _pod_usage(pod.get("spec") or {}).items():
+                used[resource] = used.get(resource, Decimal(0)) + value
+        return used
+
     def _quotas(self, namespace: str) -> list[Json]:
         """`eval-quota` as the quota controller reports it, when the test set one."""
         hard: Json = {}
         used: Json = {}
+        if self.compute_quota:
+            counted = self._compute_used(namespace)
+            hard |= self.compute_quota
+            used |= {r: _show(counted.get(r, Decimal(0))) for r in self.compute_quota}
         if self.pod_quota is not None:
             hard["pods"], used["pods"] = str(self.pod_quota), str(self._live_pods(namespace))
         if self.job_quota is not None:
@@ -1013,8 +1098,7 @@ class ApiServerDouble:
         return None
 
     def _now(self) -> str:
-        self._clock += 1
-        return (_EPOCH + timedelta(seconds=self._clock)).strftime("%Y-%m-%dT%H:%M:%SZ")
+        return self.clock.stamp()
 
     @staticmethod
     def _in(store: dict[tuple[str, str], Json], namespace: str) -> list[Json]:
@@ -1037,6 +1121,7 @@ class ApiServerDouble:
             labels[INDEX_LABEL] = str(index)
             annotations[INDEX_LABEL] = str(index)
         owner = {"apiVersion": "batch/v1", "kind": "Job", "name": job_name, "controller": True}
+        template["spec"] = self._admitted(template["spec"])
         self.pods[(namespace, name)] = {
             "apiVersion": "v1",
             "kind": "Pod",
@@ -1197,6 +1282,29 @@ class _Handler(BaseHTTPRequestHandler):
     do_GET = do_POST = do_DELETE = _serve
 
 
+def _pod_usage(pod_spec: Json) -> dict[str, Decimal]:
+    """What a pod takes from a quota's compute resources: its containers' requests and limits
+    (the policy sidecar's as well: restartable init containers run beside the others) plus its
+    overhead, in both (`PodUsageFunc` in pkg/quota/v1/evaluator/core/pods.go, through
+    `PodRequests` and `PodLimits` of component-helpers/resource/helpers.go); `cpu` and
+    `memory` alone mean the requests."""
+    usage: dict[str, Decimal] = {}
+    containers = [*pod_spec.get("initContainers", []), *pod_spec.get("containers", [])]
+    overhead = pod_spec.get("overhead") or {}
+    for kind in ("requests", "limits"):
+        amounts = [(c.get("resources") or {}).get(kind) or {} for c in containers]
+        for name, value in [(n, v) for a in [*amounts, overhead] for n, v in a.items()]:
+            key = f"{kind}.{name}"
+            usage[key] = usage.get(key, Decimal(0)) + parse_quantity(value)
+    for name in ("cpu", "memory"):
+        usage[name] = usage.get(f"requests.{name}", Decimal(0))
+    return usage
+
+
+def _show(value: Decimal) -> str:
+    return f"{value.normalize():f}"
+
+
 def _indexes(job: Json) -> range:
     spec = job["spec"]
     return range(spec.get("completions", 1) if spec.get("completionMode") == "Indexed" else 1)
@@ -1283,10 +1391,12 @@ def _selects(selector: str, labels: dict[str, str]) -> bool:
 
 
 @contextmanager
-def running_apiserver(controller: Controller = "1.31") -> Iterator[ApiServerDouble]:
+def running_apiserver(
+    controller: Controller = "1.31", *, clock: ClusterClock | None = None
+) -> Iterator[ApiServerDouble]:
     """A started double, shut down afterwards (wrap it in a fixture), its Job controller
-    ending Jobs as `controller`'s does."""
-    with ApiServerDouble(controller=controller) as double:
+    ending Jobs as `controller`'s does, on `clock` (a fresh one by default)."""
+    with ApiServerDouble(controller=controller, clock=clock or ClusterClock()) as double:
         yield double
 
 

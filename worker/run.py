@@ -21,6 +21,7 @@ from evaluator.plan import EvaluationPlan
 from evaluator.results import EpisodeResult, EvaluationResult
 from evaluator.sources import LocalDirectory, PolicySource
 from internal_api.schemas import Assignment, State
+from worker.deadline import wall_clock_limit_s
 from worker.outcome import conclusion, ended
 from worker.server_api import ServerAPI, ServerUnavailable
 from worker.settings import WorkerSettings
@@ -30,12 +31,6 @@ log = logging.getLogger(__name__)
 
 PROGRESS_INTERVAL_S = 1.0
 HEARTBEAT_INTERVAL_S = 1.0  # also how soon a cancel is seen mid-episode
-RUN_ESTIMATE_GRACE_S = 120.0
-"""Beyond the run's estimated wall time (`wall_clock_limit_s`), before the reconciler times
-the attempt out. Not a Kubernetes Job's grace, which follows a deadline Kubernetes enforces."""
-SIM_STEPS_PER_S = 20.0  # a slow machine's pace, for the evaluator's own share of the time
-SCENE_BUILD_S = 2.0  # each episode rebuilds its scene (evaluator/sim.py)
-FRAME_RENDER_S = 0.25  # a slow machine's time to render a video frame (45-100 ms on lavapipe)
 
 
 class NotRunnable(Exception):
@@ -158,20 +153,6 @@ def execute(api: ServerAPI, settings: WorkerSettings, handed: Assignment) -> Sta
 
 def _interrupted(sid: int, attempt: int) -> None:
     log.info("submission %s attempt %s interrupted: the worker is stopping", sid, attempt)
-
-
-def wall_clock_limit_s(plan: EvaluationPlan) -> float:
-    """How long the whole attempt may take before the reconciler times it out: the policy's
-    budget (which counts only its own answers) plus the evaluator's own time, generously,
-    rendering the recorded episodes' frames included."""
-    own = sum(
-        len(run.seeds) * (run.max_episode_steps / SIM_STEPS_PER_S + SCENE_BUILD_S)
-        + sum(plan.records(run, i) for i in range(len(run.seeds)))
-        * (run.max_episode_steps + 1)
-        * FRAME_RENDER_S
-        for run in plan.runs
-    )
-    return plan.limits.budget_s * 1.1 + own + RUN_ESTIMATE_GRACE_S
 
 
 def _evaluate_recording(

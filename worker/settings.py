@@ -82,6 +82,10 @@ class WorkerSettings(BaseSettings):
     evaluator_cpu: str = "2"
     evaluator_memory: str = "4Gi"
     k8s_runtime_class: str | None = None
+    k8s_runtime_overhead: Annotated[dict[str, str], NoDecode] = Field(default_factory=dict)
+    """The RuntimeClass's `overhead.podFixed`, as ``k8s_node_selector`` (``cpu=100m,
+    memory=128Mi``): what the quota counts for each pod on top of its containers, so a Job is
+    created only when it fits with it."""
     k8s_node_selector: Annotated[dict[str, str], NoDecode] = Field(default_factory=dict)
     """The eval pods' nodeSelector, as JSON (``{"pool": "eval"}``) or ``key=value,...``: keep
     participant code on its own node pool."""
@@ -117,7 +121,9 @@ class WorkerSettings(BaseSettings):
     log_format: Literal["text", "json"] = "text"
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
 
-    @field_validator("k8s_node_selector", "k8s_gpu_node_selector", mode="before")
+    @field_validator(
+        "k8s_node_selector", "k8s_gpu_node_selector", "k8s_runtime_overhead", mode="before"
+    )
     @classmethod
     def _pairs(cls, value: Any, info: ValidationInfo) -> Any:
         if not isinstance(value, str):

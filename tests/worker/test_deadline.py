@@ -4,11 +4,14 @@ charged to the participant."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from evaluator.plan import build_plan
 from evaluator.suite import load_suite
-from worker.run import FRAME_RENDER_S, wall_clock_limit_s
+from worker.deadline import FRAME_RENDER_S, wall_clock_limit_s
+from worker.kubernetes.manifest import active_deadline_for
 
 from ..evaluator.conftest import HERE
 
@@ -23,3 +26,14 @@ def test_recorded_frames_extend_the_deadline() -> None:
     # 2 filmed episodes in each of 2 tasks, under 4 conditions or only under nominal
     assert wall_clock_limit_s(filmed) - base == pytest.approx(2 * 2 * 4 * frames)
     assert wall_clock_limit_s(nominal_only) - base == pytest.approx(2 * 2 * frames)
+
+
+def test_a_jobs_deadline_is_the_plans_wall_clock_limit_plus_its_start_up() -> None:
+    """One rule for every executor: the core suite's Job gets what the docker path allows the
+    same plan (its budget and the evaluator's own time), and time to schedule and pull on top,
+    not only the policy's budget (8,220 s, when its evaluator alone needs more)."""
+    plan = build_plan(load_suite("maniskill-core"), "test", secret=b"s" * 32)
+    docker = wall_clock_limit_s(plan)
+    assert active_deadline_for(plan, startup_s=60) == math.ceil(docker) + 60
+    assert active_deadline_for(plan) >= docker + 900
+    assert docker > plan.limits.budget_s * 2  # the evaluator's own share is not small

@@ -181,6 +181,31 @@ def test_a_job_past_its_deadline_is_deadline_exceeded(apiserver: ApiServerDouble
     assert collect_logs(executor, 7, 1) == [""]  # the controller deleted the running pod
 
 
+def test_the_jobs_deadline_counts_from_its_creation_on_the_clusters_clock(
+    apiserver: ApiServerDouble,
+):
+    """The controller sets startTime at its first sync, before any pod is scheduled or
+    pulled, and fails the Job once the clock passes startTime + activeDeadlineSeconds (900 s
+    here), whatever the pods are doing; 1.31 writes FailureTarget first, 1.29 Failed."""
+    executor = executor_for(apiserver)
+    executor.start(make_spec())
+    apiserver.advance(600)  # scheduling and pulls take their time...
+    apiserver.run(NAMESPACE, "eval-7-1")
+    apiserver.advance(250)
+    assert executor.status(7, 1) == JobStatus("running")
+    apiserver.advance(60)  # ...and count against the deadline
+    status = executor.status(7, 1)
+    assert (status.phase, status.reason) == (
+        "deadline_exceeded",
+        "DeadlineExceeded: Job was active longer than specified deadline",
+    )
+    job = apiserver.jobs[(NAMESPACE, "eval-7-1")]
+    conditions = [c["type"] for c in job["status"]["conditions"]]
+    assert conditions == (["FailureTarget"] if apiserver.controller == "1.31" else ["Failed"])
+    apiserver.advance(3600)  # a Job already failed is not failed again
+    assert [c["type"] for c in job["status"]["conditions"]] == conditions
+
+
 def test_a_job_that_does_not_exist_is_missing(apiserver: ApiServerDouble):
     assert executor_for(apiserver).status(99, 1) == JobStatus("missing", "no Job eval-99-1")
 

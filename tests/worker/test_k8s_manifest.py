@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import re
 from collections.abc import Callable
 from pathlib import Path, PurePosixPath
@@ -26,6 +27,7 @@ from tests.worker.k8s_specs import (
     tiny_evaluation,
 )
 from worker.containers import ContainerLimits, container_config
+from worker.deadline import wall_clock_limit_s
 from worker.kubernetes.manifest import (
     GPU_RESOURCE,
     MAX_PAYLOAD_BYTES,
@@ -502,9 +504,8 @@ def test_disruptions_are_ignored_and_evaluator_errors_fail_the_job_without_retri
 
 
 def test_deadline_and_ttl_come_from_the_spec():
-    limits = tiny_evaluation().plan().limits
-    deadline = active_deadline_for(limits, startup_s=60)
-    assert deadline == int(limits.budget_s + limits.connect_timeout_s) + 60
+    plan = tiny_evaluation().plan()
+    assert active_deadline_for(plan, startup_s=60) == math.ceil(wall_clock_limit_s(plan)) + 60
     spec = build_job(make_spec())["spec"]
     assert (spec["activeDeadlineSeconds"], spec["ttlSecondsAfterFinished"]) == (900, 600)
 

@@ -25,6 +25,19 @@ def test_a_job_demands_its_pods_their_requests_and_limits_and_itself() -> None:
     assert needs["limits.memory"] > 0
 
 
+def test_a_pod_with_a_runtime_class_demands_its_overhead_too() -> None:
+    """The quota counts the RuntimeClass's overhead in each pod's requests and limits."""
+    gvisor = build_job(make_spec(shards=2, runtime_class_name="gvisor"))
+    overhead = {"cpu": "100m", "memory": "128Mi"}
+    bare, sandboxed = demand(gvisor), demand(gvisor, overhead=overhead)
+    for resource in ("requests.cpu", "limits.cpu", "cpu"):
+        assert sandboxed[resource] - bare[resource] == Decimal("0.2")  # 100m a pod
+    for resource in ("requests.memory", "limits.memory", "memory"):
+        assert sandboxed[resource] - bare[resource] == 2 * 128 * 2**20
+    # Without a RuntimeClass no overhead is admitted with the pod, whatever is configured.
+    assert demand(build_job(make_spec()), overhead=overhead) == demand(build_job(make_spec()))
+
+
 def _cores(value: str) -> float:
     return int(value[:-1]) / 1000 if value.endswith("m") else float(value)
 

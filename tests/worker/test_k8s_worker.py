@@ -30,6 +30,7 @@ from evaluator.plan import EvaluationPlan, build_plan
 from evaluator.results import Abort, EvaluationResult
 from evaluator.runner import ShardOutcome
 from evaluator.sources import LocalDirectory
+from evaluator.suite import SUITES_DIR
 from internal_api.schemas import State
 from server.challenges.service import ChallengeOptions, load_challenge, suite_of
 from server.kit.settings import Settings
@@ -345,8 +346,8 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
         ),
         (
             lambda api, name: api.exceed_deadline(NAMESPACE, name),
-            State.TIMED_OUT,
-            "the evaluation exceeded its time budget",
+            State.QUEUED,  # the deadline covers the whole plan: the cluster's doing
+            "the cluster stopped the evaluation: its Job ran past its deadline (DeadlineExceeded",
         ),
         (
             # From 1.31 the pods go before the Job says Failed: its FailureTarget decides
@@ -354,8 +355,8 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
                 api.exceed_deadline(NAMESPACE, name),
                 api.settle(NAMESPACE, name, terminal=False),
             ),
-            State.TIMED_OUT,
-            "the evaluation exceeded its time budget",
+            State.QUEUED,
+            "the cluster stopped the evaluation: its Job ran past its deadline (DeadlineExceeded",
         ),
         (
             lambda api, name: api.jobs.pop((NAMESPACE, name)),
@@ -639,6 +640,60 @@ def test_an_eviction_that_makes_the_job_run_out_of_time_is_not_the_policys_fault
     assert "evict" in reason.lower(), reason
 
 
+@pytest.fixture
+def core_queued(committed_sessions: sessionmaker[Session]) -> Submission:
+    """A submission to the core suite: a 2 h budget, and its evaluator's own time besides."""
+    with committed_sessions() as db:
+        options = ChallengeOptions(quota_concurrent=10, quota_per_day=10)
+        challenge = load_challenge(
+            db, SUITES_DIR / "maniskill-core.yaml", options, seed_secret="s" * 32
+        )
+        submission = queue_submission(db, make_user(db, "carol"), challenge)
+        db.commit()
+        return submission
+
+
+def test_a_policy_using_its_whole_budget_on_a_slow_evaluator_is_not_killed_by_the_deadline(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    core_queued: Submission,
+) -> None:
+    """The policy's answers take its whole budget and the evaluator's own work a fifth of it
+    more, after ten minutes of scheduling and pulls: the Job's deadline covers all of it (it
+    counts from the Job's start, the policy's budget only the answers)."""
+    sid, name = core_queued.id, job_name(core_queued.id, 1)
+    run = start(api, wsettings, committed_sessions, apiserver, sid)
+    budget = plan_of(committed_sessions, settings, sid).limits.budget_s
+    apiserver.advance(600)  # the node, the images
+    apiserver.run(NAMESPACE, name)
+    apiserver.advance(budget * 1.2)
+    assert "conditions" not in apiserver.jobs[(NAMESPACE, name)]["status"]  # not killed
+    apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, sid)])
+    assert run.wait() == State.SUCCEEDED
+
+
+def test_a_job_the_cluster_kills_at_its_deadline_is_the_clusters_doing(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    """The deadline holds the whole plan's wall-clock limit and the start-up: a Job that the
+    controller still kills there was slowed by the cluster (`error`, cause `cluster`, no quota
+    used, run once more), while the evaluator's own `budget_exhausted` stays `timed_out`."""
+    name = job_name(queued.id, 1)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
+    apiserver.run(NAMESPACE, name)
+    deadline = apiserver.jobs[(NAMESPACE, name)]["spec"]["activeDeadlineSeconds"]
+    apiserver.advance(deadline)
+    reason = assert_cluster_error(committed_sessions, queued.id, run.wait())
+    assert "ran past its deadline (DeadlineExceeded" in reason, reason
+
+
 def looked_twice(
     apiserver: ApiServerDouble,
     wsettings: WorkerSettings,
@@ -751,7 +806,7 @@ def test_a_pod_pending_within_the_timeout_is_waited_for(
     looked_twice(apiserver, wsettings, committed_sessions, queued.id)
     assert run.submission(queued.id).state == State.RUNNING
     apiserver.exceed_deadline(NAMESPACE, name)  # ...or not: then the deadline decides
-    assert run.wait() == State.TIMED_OUT
+    assert_cluster_error(committed_sessions, queued.id, run.wait())
 
 
 @pytest.mark.parametrize(
@@ -946,6 +1001,45 @@ def test_a_cancel_while_waiting_for_room_creates_no_job(
     assert [r for r in apiserver.requests if r.method == "POST"] == []
 
 
+def test_a_job_that_fits_the_quota_only_without_its_runtime_class_overhead_waits_for_room(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    """The quota counts the sandbox's overhead in every pod: a worker that left it out would
+    create the Job, see its pod refused, take it back and make it again, round and round."""
+    gvisor = {"cpu": "100m", "memory": "128Mi"}
+    apiserver.runtime_classes["gvisor"] = gvisor
+    sandboxed = k8s_worker(
+        settings, apiserver, k8s_runtime_class="gvisor", k8s_runtime_overhead=gvisor
+    )
+    # Room for the Job's containers (2 CPUs of the evaluator, 1 of the policy) but not for
+    # its overhead on top, beside someone else's pod of 1 CPU.
+    apiserver.compute_quota = {"requests.cpu": "4050m"}
+    other = (NAMESPACE, "someone-else")
+    apiserver.pods[other] = {
+        "metadata": {"name": other[1], "namespace": NAMESPACE, "labels": {}},
+        "spec": {"containers": [{"name": "x", "resources": {"requests": {"cpu": "1"}}}]},
+        "status": {"phase": "Running"},
+    }
+    apiserver.on_create = apiserver.run  # the controller makes the pods at once
+    run = Run(api, sandboxed, committed_sessions)
+    until(lambda: waiting_for_room(committed_sessions, queued.id), "the claim waiting for room")
+    detail = submission_of(committed_sessions, queued.id).progress["detail"]
+    assert detail.startswith("quota eval-quota: requests.cpu 1 used of 4.05, the Job needs 3.1")
+    assert apiserver.created_bodies() == []  # no Job made only for its pod to be refused
+    with apiserver.lock:
+        del apiserver.pods[other]
+    name = job_name(queued.id, 1)
+    until(lambda: apiserver.pods_of(NAMESPACE, name), "the Job made, its pod admitted")
+    assert apiserver.pods_of(NAMESPACE, name)[0]["spec"]["overhead"] == gvisor
+    apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, queued.id)])
+    assert run.wait() == State.SUCCEEDED
+    assert apiserver.events == []  # no pod was ever refused
+
+
 def test_a_cancel_stops_the_job_between_looks(
     committed_sessions: sessionmaker[Session],
     settings: Settings,
@@ -968,7 +1062,7 @@ def test_a_cancel_stops_the_job_between_looks(
     assert made["list pods"] == 1  # the watch's first list: no look at the pods of its own
 
 
-def test_a_job_whose_pods_the_quota_refuses_after_all_is_made_again_when_there_is_room(
+def test_a_job_whose_pods_the_quota_refuses_is_made_again_with_a_new_deadline_when_there_is_room(
     committed_sessions: sessionmaker[Session],
     settings: Settings,
     api: ServerAPI,
@@ -1005,9 +1099,21 @@ def test_a_job_whose_pods_the_quota_refuses_after_all_is_made_again_when_there_i
         ),
         "the attempt waiting for room",
     )
+    first_deadline = submission_of(committed_sessions, queued.id).deadline_at
+    assert first_deadline is not None
+    made_again_after = utcnow()
     with apiserver.lock:
         del apiserver.pods[other]  # the other evaluation ends
     until(lambda: len(created) == 2 and apiserver.pods_of(NAMESPACE, name), "the Job made again")
+    # The new Job's deadline runs from its creation: the attempt's moves with it, else a long
+    # wait for room would end in the reconciler's `timed_out`, charged to the participant.
+    job_deadline = apiserver.jobs[(NAMESPACE, name)]["spec"]["activeDeadlineSeconds"]
+    moved = made_again_after + timedelta(seconds=job_deadline + watch_module.JOB_DEADLINE_GRACE_S)
+    until(
+        lambda: submission_of(committed_sessions, queued.id).deadline_at >= moved,  # type: ignore[operator]
+        "the new Job's deadline reported",
+    )
+    assert moved > first_deadline
     plan = plan_of(committed_sessions, settings, queued.id)
     document = build_result(plan, "image", [ShardOutcome()], started=STARTED)
     apiserver.succeed(NAMESPACE, name, [printed(document)])

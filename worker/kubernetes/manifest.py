@@ -21,6 +21,7 @@ and tolerations to those of every evaluation pod.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -40,9 +41,9 @@ from evaluator.job import (
 )
 from evaluator.plan import EvaluationPlan
 from evaluator.provenance import EVALUATOR_IMAGE_ENV
-from evaluator.suite import Limits
 from internal_api.schemas import PINNED_IMAGE
 from manieval_sdk.serve import ENDPOINT_ENV
+from worker.deadline import wall_clock_limit_s
 
 APP_LABEL = "app.kubernetes.io/name"
 SUBMISSION_LABEL = "manieval.io/submission"
@@ -276,9 +277,16 @@ def needs_gpu(plan: EvaluationPlan) -> bool:
     return any(run.sim_backend == "physx_cuda" for run in plan.runs)
 
 
-def active_deadline_for(limits: Limits, *, startup_s: int = 900) -> int:
-    """The Job's deadline: the budget, the connect timeout, and time to schedule and pull."""
-    return int(limits.budget_s + limits.connect_timeout_s) + startup_s
+JOB_STARTUP_S = 900
+"""Time for the Job's pods to be scheduled (an autoscaler may add a node) and pull both images:
+the Job's clock (`startTime`) runs from its first sync by the controller, before all that."""
+
+
+def active_deadline_for(plan: EvaluationPlan, *, startup_s: int = JOB_STARTUP_S) -> int:
+    """The Job's deadline: the whole plan's wall-clock limit, by the rule every executor
+    follows (`worker.deadline.wall_clock_limit_s`: the budget and the evaluator's own time),
+    plus time to schedule and pull."""
+    return math.ceil(wall_clock_limit_s(plan)) + startup_s
 
 
 def build_job(spec: JobSpec) -> dict[str, Any]:

@@ -40,12 +40,20 @@ def quota_of(obj: Any) -> Quota:
     return Quota(obj.metadata.name if obj.metadata is not None else "?", hard, used)
 
 
-def demand(job: Mapping[str, Any]) -> dict[str, Decimal]:
-    """What one Job takes from a quota, by resource name as quotas spell them."""
+def demand(
+    job: Mapping[str, Any], *, overhead: Mapping[str, str] | None = None
+) -> dict[str, Decimal]:
+    """What one Job takes from a quota, by resource name as quotas spell them. A pod with a
+    RuntimeClass is given that class's `overhead` (its `podFixed`) at admission, and the quota
+    counts it in the pod's requests and limits (`PodUsageFunc` in
+    pkg/quota/v1/evaluator/core/pods.go, through `PodRequests`/`PodLimits`)."""
     spec = job["spec"]
     pods = int(spec.get("parallelism") or 1)
     pod_spec = spec["template"]["spec"]
     containers = [*pod_spec.get("initContainers", []), *pod_spec.get("containers", [])]
+    if overhead and pod_spec.get("runtimeClassName"):
+        costs = {"requests": dict(overhead), "limits": dict(overhead)}
+        containers.append({"name": "(RuntimeClass overhead)", "resources": costs})
     needs: dict[str, Decimal] = {
         "pods": Decimal(pods),
         "count/pods": Decimal(pods),

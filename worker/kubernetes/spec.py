@@ -29,7 +29,7 @@ def job_spec(settings: WorkerSettings, handed: Assignment) -> JobSpec:
         ),
         gpu=needs_gpu(plan),
         policy_gpus=plan.policy.gpus,
-        active_deadline_seconds=active_deadline_for(plan.limits),
+        active_deadline_seconds=active_deadline_for(plan),
         runtime_class_name=settings.k8s_runtime_class,
         shards=handed.shards,
         node_selector=tuple(sorted(settings.k8s_node_selector.items())),

@@ -31,7 +31,7 @@ from kubernetes.client import V1Pod
 from evaluator.job import JobOutputError, result_from_logs
 from evaluator.plan import EvaluationPlan
 from evaluator.sources import LOG_TAIL_BYTES
-from internal_api.schemas import Assignment, ErrorCause, FinalReport, State
+from internal_api.schemas import Assignment, ErrorCause, FinalReport, ReportOut, State
 from worker.kubernetes.client import (
     JobConflict,
     KubernetesError,
@@ -168,9 +168,7 @@ class _Watch:
         room = self._until_room()
         if room not in (_ROOM, _UNKNOWN):
             return room  # type: ignore[return-value]
-        deadline_s = self.spec.active_deadline_seconds + JOB_DEADLINE_GRACE_S
-        reason = f"evaluating as Kubernetes Job {self.spec.name}"
-        running = self.api.running(*self.ids, reason=reason, deadline_s=deadline_s)
+        running = self._running()
         if running is None or not running.applied:
             return running.state if running is not None else None
         while True:
@@ -194,11 +192,17 @@ class _Watch:
         self._uid, self._quotas_read = started.uid, room is _ROOM
         return self.follow()
 
+    def _running(self) -> ReportOut | None:
+        """`running`, with the deadline of a Job made now: its own, and time to see it end."""
+        deadline_s = self.spec.active_deadline_seconds + JOB_DEADLINE_GRACE_S
+        reason = f"evaluating as Kubernetes Job {self.spec.name}"
+        return self.api.running(*self.ids, reason=reason, deadline_s=deadline_s)
+
     def _until_room(self) -> object:
         """Wait until the namespace's quotas have room for the whole Job, beating meanwhile:
         `_ROOM`, `_UNKNOWN` (the quotas cannot be read), or the state the attempt ended in
         (cancelled, or a quota it can never fit)."""
-        needs = demand(build_job(self.spec))
+        needs = demand(build_job(self.spec), overhead=self.settings.k8s_runtime_overhead)
         waiting = False
         while True:
             try:
@@ -375,6 +379,10 @@ class _Watch:
             return self.end(State.ERROR, reason, cause=CLUSTER)
         self._uid, self._seen, self._pending_since = started.uid, frozenset(), None
         self._quotas_read = room is _ROOM
+        running = self._running()  # the new Job's clock starts now, and so does the attempt's
+        if running is None or not running.applied:  # ended or replaced meanwhile
+            self._delete()
+            return running.state if running is not None else State.CANCELLED
         return None
 
     def _warnings(self) -> str:
@@ -418,8 +426,10 @@ class _Watch:
             then = " and it then ran out of time" if status.phase == "deadline_exceeded" else ""
             reason = f"the cluster stopped the evaluation{then}: {disrupted}"
             return self.end(State.ERROR, reason, cause=CLUSTER)
-        if status.phase == "deadline_exceeded":
-            return self.end(State.TIMED_OUT, "the evaluation exceeded its time budget")
+        if status.phase == "deadline_exceeded":  # it covers the whole plan (`active_deadline_for`):
+            # the cluster ran it too slowly, the policy's budget being the evaluator's to enforce
+            reason = f"{STOPPED}its Job ran past its deadline ({status.reason})"
+            return self.end(State.ERROR, reason, cause=CLUSTER)
         return self.end(State.ERROR, f"the evaluator failed ({status.reason})")
 
     def _collect(self) -> State | None:
