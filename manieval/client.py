@@ -28,6 +28,10 @@ IDLE_S = 2.0
 """How long an idle connection is kept for the next call: less than the server's keep-alive
 (uvicorn closes after 5 s), so that no call is sent on a connection the server is closing (the
 call would fail with "connection reset by peer", a race a slow poll meets)."""
+IDEMPOTENT = frozenset({"GET", "HEAD", "PUT", "DELETE"})
+"""Methods whose call is sent once more when the connection breaks before an answer (RFC 9110,
+9.2.2): a reused connection the server was closing, on a machine too busy to keep the margin
+`IDLE_S` leaves."""
 # Submitting resolves the image through its registry (several requests, each with its own
 # server-side timeout): give it longer than a plain read.
 SUBMIT_READ_S = 120.0
@@ -201,10 +205,17 @@ class Client:
         import httpx
 
         timeout = httpx.Timeout(read_s, connect=CONNECT_S)
+        tries = 2 if method.upper() in IDEMPOTENT else 1
         try:
-            response = self._http.request(
-                method, API + path, json=json, params=params, timeout=timeout
-            )
+            for tried in range(1, tries + 1):
+                try:
+                    response = self._http.request(
+                        method, API + path, json=json, params=params, timeout=timeout
+                    )
+                    break
+                except (httpx.ReadError, httpx.WriteError, httpx.RemoteProtocolError):
+                    if tried == tries:  # the broken connection is dropped: the next is new
+                        raise
         except httpx.TimeoutException:
             raise Unreachable(self.server, f"no answer within {read_s:.0f} s") from None
         except httpx.TransportError as exc:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import httpx
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
@@ -61,4 +62,15 @@ def server_api(app: FastAPI, worker: WorkerSettings, *, spool: Path | None = Non
         spool=Spool(spool or worker.resolved_spool_dir),
         claim_patience_s=worker.claim_patience_s,
         report_patience_s=worker.report_patience_s,
+    )
+
+
+def public_api(url: str) -> httpx.Client:
+    """A client of a served instance's public API (`url`: its base), as a test's participant.
+
+    A new connection per request: on a reused one, a request can meet the server's keep-alive
+    closing it (uvicorn's 5 s), "connection reset by peer", when the test is descheduled for
+    seconds between taking the connection and sending, as on a loaded machine."""
+    return httpx.Client(
+        base_url=f"{url}/api/v1", timeout=60, limits=httpx.Limits(max_keepalive_connections=0)
     )

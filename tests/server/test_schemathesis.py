@@ -256,13 +256,14 @@ def world(request: pytest.FixtureRequest) -> World:
 
 
 CALL_TIMEOUT_S = 300
-"""How long one call may take before it counts as hung: schemathesis's default (10 s) is a
-guess about an idle machine, and a busy one took longer to answer GET /team on Postgres."""
+"""How long one call (the schema's load included) may take before it counts as hung:
+schemathesis's default (10 s) is a guess about an idle machine; a busy one took longer to
+answer GET /team on Postgres, and to build /openapi.json."""
 
 
 @pytest.fixture(scope="module")
 def api_schema(world: World) -> Any:
-    return schemathesis.openapi.from_asgi("/openapi.json", world.app)
+    return schemathesis.openapi.from_asgi("/openapi.json", world.app, timeout=CALL_TIMEOUT_S)
 
 
 def _no_leak(response: Any, case: schemathesis.Case) -> None:

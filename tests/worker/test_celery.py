@@ -39,6 +39,7 @@ from server.submissions.reports import report_running
 from server.submissions.work import claim_next
 from testkit.factories import PASSWORD, embedded_database, fake_resolve_for
 from testkit.waiting import poll, until
+from testkit.workers import public_api
 from tests.worker.celery_workers import (
     WORKER_KEYS,
     add_challenge,
@@ -237,9 +238,7 @@ def cluster(
     # Image submissions are pinned by a registry stand-in (the registry has its own tests).
     cast(FastAPI, service.server.config.app).state.services.resolve = fake_resolve_for(settings)
     assert service.start(), "the server did not start"
-    api = httpx.Client(
-        base_url=f"{service.url}/api/v1", timeout=60, limits=httpx.Limits(keepalive_expiry=2.0)
-    )
+    api = public_api(service.url)
     r = api.post(
         "/users", json={"username": "alice", "email": "a@example.org", "password": PASSWORD}
     )

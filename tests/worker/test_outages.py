@@ -37,6 +37,7 @@ from server.models import State, Submission, Transition, utcnow
 from server.submissions.work import assignment
 from testkit.factories import PASSWORD, embedded_database
 from testkit.waiting import poll, until
+from testkit.workers import public_api
 from tests.private_postgres import PrivatePostgres
 from tests.worker.celery_workers import add_challenge, celery_worker, wait_ready, worker_environment
 from tests.worker.redis_server import Redis, free_port
@@ -99,9 +100,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
             env, queues=settings.celery_queue, policies=REPO / "examples" / "policies", log=log
         )
         wait_ready(worker, log)
-        api = httpx.Client(
-            base_url=f"{service.url}/api/v1", timeout=60, limits=httpx.Limits(keepalive_expiry=2.0)
-        )
+        api = public_api(service.url)
         r = api.post(
             "/users", json={"username": "alice", "email": "a@example.org", "password": PASSWORD}
         )
