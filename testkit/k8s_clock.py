@@ -52,10 +52,14 @@ def past_active_deadline(job: dict[str, Any], now: datetime) -> bool:
     deadline, started = spec.get("activeDeadlineSeconds"), status.get("startTime")
     if deadline is None or started is None or spec.get("suspend"):
         return False
-    if job["metadata"].get("deletionTimestamp"):
-        return False
-    conditions = status.get("conditions") or []
-    if any(c["type"] in _ENDED and c.get("status") == "True" for c in conditions):
+    if job["metadata"].get("deletionTimestamp") or decided(job):
         return False
     since = now - datetime.strptime(started, _FORMAT).replace(tzinfo=UTC)
     return since >= timedelta(seconds=deadline)
+
+
+def decided(job: dict[str, Any]) -> bool:
+    """Whether the controller has decided the Job's end (a finished condition: `syncJob`
+    returns early on one, in pkg/controller/job/job_controller.go)."""
+    conditions = (job.get("status") or {}).get("conditions") or []
+    return any(c["type"] in _ENDED and c.get("status") == "True" for c in conditions)

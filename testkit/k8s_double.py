@@ -16,7 +16,8 @@ Where the real server behaves in a way that surprises clients, the double does t
 foreground deletion answers with the Job itself (not a Status), batch/v1 deletes without a
 propagation policy orphan the pods, and logs come back as text/plain. And where real clusters
 fail in ways the worker must tell apart from the policy's failures, the double fails alike:
-evicted pods are deleted (and replaced, as the Job's podFailurePolicy ignores disruptions),
+evicted pods are deleted, the Job's podFailurePolicy deciding whether the Job fails or a new
+pod replaces them (`evict`, `disrupt`, `testkit.k8s_pod_failure_policy`),
 pods stay Pending with an Unschedulable condition, a ResourceQuota refuses Jobs (403 on create)
 or pods (the Job controller records a FailedCreate warning and makes no pod), and an expired
 list continuation answers `410 Gone`. An image pull fails and is retried as the kubelet does
@@ -66,8 +67,10 @@ from testkit.k8s_clock import (
     DEADLINE_EXCEEDED,
     DEADLINE_MESSAGE,
     ClusterClock,
+    decided,
     past_active_deadline,
 )
+from testkit.k8s_pod_failure_policy import POD_FAILURE_POLICY, match_pod_failure_policy
 from worker.kubernetes.client import Backoff, KubernetesExecutor, no_client_retries
 from worker.kubernetes.manifest import EVALUATOR, INDEX_LABEL, job_name
 
@@ -354,6 +357,8 @@ class ApiServerDouble:
         and the controller fails it; a Job without a deadline is failed so all the same."""
         with self.lock:
             job = self.jobs[(namespace, name)]
+            if decided(job):  # failed or completed before: its deadline no longer counts
+                return
             deadline = job["spec"].get("activeDeadlineSeconds")
             started = (job.get("status") or {}).get("startTime")
             if deadline is not None and started is not None:
@@ -377,22 +382,17 @@ class ApiServerDouble:
 
     @_publishes
     def evict(
-        self,
-        namespace: str,
-        name: str,
-        *,
-        reason: str = "EvictionByEvictionAPI",
-        replace: bool = True,
+        self, namespace: str, name: str, *, reason: str = "EvictionByEvictionAPI"
     ) -> str | None:
-        """Evict the Job's pods as a real cluster does: marked DisruptionTarget, then deleted
-        (the Eviction API and preemption delete the pod). The controller makes a replacement
-        (podFailurePolicy ignores disruptions), Pending until scheduled: its name."""
+        """Evict the Job's pods as a real cluster does: the Eviction API (a node drain goes
+        through it) or the scheduler's preemption (`reason="PreemptionByScheduler"`) marks each
+        DisruptionTarget, its kubelet ends it (Failed), and it is deleted once the controller
+        has counted it (its job-tracking finalizer removed): a worker that was not watching
+        (restarted) finds only the Job. The Job's podFailurePolicy decides what follows
+        (`_disrupted`): FailJob fails the Job; Ignore makes a replacement, Pending until
+        scheduled (its name)."""
         with self.lock:
-            for pod in self._pods_of(namespace, name):
-                del self.pods[(namespace, pod["metadata"]["name"])]
-            if not replace:
-                return None
-            return self._add_pod(self.jobs[(namespace, name)], 0, ready=False)
+            return self._disrupted(namespace, name, reason, delete=True)
 
     @_publishes
     def lose_node(self, namespace: str, name: str) -> None:
@@ -436,19 +436,54 @@ class ApiServerDouble:
             return names
 
     @_publishes
-    def disrupt(self, namespace: str, name: str) -> str:
-        """Evict the Job's pod (DisruptionTarget); the controller makes a new one (its name)."""
+    def disrupt(
+        self, namespace: str, name: str, *, reason: str = "EvictionByEvictionAPI"
+    ) -> str | None:
+        """As `evict`, the failed pods still listed (not yet deleted); under an Ignore rule the
+        replacement has started (its name)."""
         with self.lock:
-            for pod in self._pods_of(namespace, name):
-                pod["status"]["phase"] = "Failed"
-                pod["status"]["conditions"] = [
-                    {
-                        "type": "DisruptionTarget",
-                        "status": "True",
-                        "reason": "EvictionByEvictionAPI",
-                    }
-                ]
-            return self._add_pod(self.jobs[(namespace, name)], 0, ready=True)
+            return self._disrupted(namespace, name, reason, delete=False)
+
+    def _disrupted(self, namespace: str, name: str, reason: str, *, delete: bool) -> str | None:
+        """The Job's running pods disrupted with `reason` (a DisruptionTarget condition set
+        before the pod is deleted: `addConditionAndDeletePod` in pkg/registry/core/pod/storage/
+        eviction.go, PreemptionByScheduler in pkg/scheduler/framework/preemption), then failed; the
+        controller matches the first against the Job's podFailurePolicy
+        (`testkit.k8s_pod_failure_policy`, as `trackJobStatusAndRemoveFinalizers` does).
+        FailJob: the Job fails with reason PodFailurePolicy and the rule's message, its other
+        pods ended, in the order of `controller`; no replacement. Ignore: a new pod (its
+        name). Count: the backoffLimit of 0 fails the Job (BackoffLimitExceeded)."""
+        job = self.jobs[(namespace, name)]
+        pods = [p for p in self._pods_of(namespace, name) if p["status"]["phase"] not in _TERMINAL]
+        matched = None
+        for pod in pods:
+            pod["status"]["phase"] = "Failed"
+            pod["status"].setdefault("conditions", []).append(
+                {
+                    "type": "DisruptionTarget",
+                    "status": "True",
+                    "reason": reason,
+                    "message": f"{reason}: the cluster ended the pod",
+                    "lastTransitionTime": self._now(),
+                }
+            )
+            matched = matched or match_pod_failure_policy(job, pod)
+            if delete:
+                del self.pods[(namespace, pod["metadata"]["name"])]
+        if matched is None:
+            return None
+        if matched.action == "Ignore":
+            return self._add_pod(job, 0, ready=not delete)
+        for pod in self._pods_of(namespace, name):
+            if pod["status"]["phase"] not in _TERMINAL:
+                self._end_pod(pod)  # another shard's: `deleteActivePods` once the Job fails
+        job["status"].update(active=0, ready=0, failed=len(pods))
+        if matched.action == "FailJob":
+            self._conclude(job, "FailureTarget", "Failed", POD_FAILURE_POLICY, matched.message)
+        else:
+            limit = "Job has reached the specified backoff limit"
+            self._conclude(job, "FailureTarget", "Failed", "BackoffLimitExceeded", limit)
+        return None
 
     def write_log(self, namespace: str, name: str, container: str, text: str) -> None:
         """What a container of the Job's (first) pod has printed so far."""

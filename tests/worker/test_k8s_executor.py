@@ -141,12 +141,53 @@ def test_the_policy_log_tail_can_be_collected_too(apiserver: ApiServerDouble):
     assert collect_logs(executor, 7, 1, container="policy", tail_lines=2) == ["line 8\nline 9\n"]
 
 
-def test_after_a_disruption_the_replacement_pods_log_is_collected(apiserver: ApiServerDouble):
+@pytest.mark.parametrize("reason", ["EvictionByEvictionAPI", "PreemptionByScheduler"])
+def test_a_disruption_fails_the_job_by_its_pod_failure_policy_and_makes_no_new_pod(
+    apiserver: ApiServerDouble, reason: str
+):
     executor = executor_for(apiserver)
     executor.start(make_spec())
+    [pod] = apiserver.run(NAMESPACE, "eval-7-1")
+    assert apiserver.evict(NAMESPACE, "eval-7-1", reason=reason) is None  # no replacement
+    rule = f"Pod {NAMESPACE}/{pod} has condition DisruptionTarget matching FailJob rule at index 0"
+    conditions = apiserver.jobs[(NAMESPACE, "eval-7-1")]["status"]["conditions"]
+    interim = ["FailureTarget"] if apiserver.controller == "1.31" else ["FailureTarget", "Failed"]
+    assert [c["type"] for c in conditions] == interim
+    assert {(c["reason"], c["message"]) for c in conditions} == {("PodFailurePolicy", rule)}
+    assert apiserver.pods_of(NAMESPACE, "eval-7-1") == []  # deleted once counted
+    status = executor.status(7, 1)
+    assert (status.phase, status.reason) == ("failed", f"PodFailurePolicy: {rule}")
+    said = (
+        f"pod {pod} was disrupted by the cluster, which failed its Job (PodFailurePolicy: {rule})"
+    )
+    assert status.disrupted == said  # from the Job alone: its pod is gone
+    assert executor.pods(7, 1).disrupted == said
+    apiserver.settle(NAMESPACE, "eval-7-1")
+    assert executor.status(7, 1).disrupted == said
+
+
+def test_a_sharded_jobs_disrupted_pods_stay_listed_and_say_why(apiserver: ApiServerDouble):
+    executor = executor_for(apiserver)
+    executor.start(make_spec(shards=2))
+    first, second = apiserver.run(NAMESPACE, "eval-7-1")
+    apiserver.disrupt(NAMESPACE, "eval-7-1")  # both evicted, still listed
+    listed = {p["metadata"]["name"]: p for p in apiserver.pods_of(NAMESPACE, "eval-7-1")}
+    assert set(listed) == {first, second}
+    assert {p["status"]["phase"] for p in listed.values()} == {"Failed"}
+    assert "(EvictionByEvictionAPI" in str(executor.pods(7, 1).disrupted)
+    assert executor.status(7, 1).phase == "failed"
+
+
+def test_under_an_ignore_rule_the_double_replaces_a_disrupted_pod(apiserver: ApiServerDouble):
+    manifest = build_job(make_spec())
+    manifest["spec"]["podFailurePolicy"]["rules"][0]["action"] = "Ignore"
+    apiserver.put_job(manifest)
+    executor = executor_for(apiserver)
     [first] = apiserver.run(NAMESPACE, "eval-7-1")
     apiserver.logs[(NAMESPACE, first, "evaluator")] = "evicted half way"
-    apiserver.disrupt(NAMESPACE, "eval-7-1")
+    replacement = apiserver.disrupt(NAMESPACE, "eval-7-1")
+    assert replacement is not None
+    assert executor.status(7, 1).phase != "failed"
     apiserver.succeed(NAMESPACE, "eval-7-1", ["the rerun's log"])
     assert collect_logs(executor, 7, 1) == ["the rerun's log"]
 
@@ -160,6 +201,7 @@ def test_a_failed_job_reports_the_controllers_reason(apiserver: ApiServerDouble,
     status = executor.status(7, 1)
     assert status.phase == "failed"
     assert status.reason == f"{reason}: evaluator exit code 1"
+    assert status.disrupted is None  # the evaluator's failure, not a disruption
 
 
 def test_a_failed_jobs_evaluator_log_is_still_readable(apiserver: ApiServerDouble):
@@ -397,10 +439,12 @@ def test_the_pods_say_what_the_cluster_did_to_them(apiserver: ApiServerDouble):
     view = executor.pods(7, 1)
     assert view.unschedulable == "0/3 nodes are available: 3 Insufficient nvidia.com/gpu."
     assert (view.alive, view.names, view.disrupted) == ({pod}, {pod}, None)
-    replacement = apiserver.evict(NAMESPACE, "eval-7-1")  # deleted, and replaced
-    assert executor.pods(7, 1).names == {replacement}
     apiserver.lose_node(NAMESPACE, "eval-7-1")
     assert "(DeletionByTaintManager: Taint manager" in str(executor.pods(7, 1).disrupted)
+    apiserver.evict(NAMESPACE, "eval-7-1")  # deleted: only the failed Job says it now
+    view = executor.pods(7, 1)
+    assert view.names == set()
+    assert f"pod {pod} was disrupted by the cluster, which failed its Job" in str(view.disrupted)
 
 
 def test_the_quotas_refusal_of_a_pod_is_in_the_jobs_events(apiserver: ApiServerDouble):

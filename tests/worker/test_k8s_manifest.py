@@ -491,12 +491,12 @@ def test_shards_make_an_indexed_job_with_one_pod_per_shard_at_once():
     assert (spec["completionMode"], spec["completions"], spec["parallelism"]) == ("Indexed", 5, 5)
 
 
-def test_disruptions_are_ignored_and_evaluator_errors_fail_the_job_without_retries():
+def test_disruptions_and_evaluator_errors_each_fail_the_job_without_retries():
     spec = build_job(make_spec())["spec"]
     assert spec["backoffLimit"] == 0
-    ignore, fail = spec["podFailurePolicy"]["rules"]
-    assert ignore == {
-        "action": "Ignore",
+    disrupted, fail = spec["podFailurePolicy"]["rules"]
+    assert disrupted == {
+        "action": "FailJob",  # the Job itself then says the cluster stopped it
         "onPodConditions": [{"type": "DisruptionTarget", "status": "True"}],
     }
     assert fail["action"] == "FailJob"

@@ -620,7 +620,7 @@ def test_a_silent_attempt_whose_job_is_gone_is_lost_as_before(
     assert (submission.state, submission.attempt) == (State.QUEUED, 2)
 
 
-def test_an_eviction_that_makes_the_job_run_out_of_time_is_not_the_policys_fault(
+def test_an_eviction_then_the_deadline_passing_is_still_the_evictions_doing(
     committed_sessions: sessionmaker[Session],
     api: ServerAPI,
     wsettings: WorkerSettings,
@@ -631,13 +631,53 @@ def test_an_eviction_that_makes_the_job_run_out_of_time_is_not_the_policys_fault
     run = start(api, wsettings, committed_sessions, apiserver, queued.id)
     apiserver.run(NAMESPACE, name)
     with apiserver.together():
-        apiserver.disrupt(NAMESPACE, name)  # the replacement pod starts late...
-        apiserver.exceed_deadline(NAMESPACE, name)  # ...and the Job's clock ran on
-    # Pods and Jobs come on two watches: which the watcher sees first is the cluster's timing
-    # (the deadline, then the disruption read fresh; or the disruption alone). Either way the
-    # cluster is charged and says it evicted the evaluation.
+        apiserver.disrupt(NAMESPACE, name)  # FailJob: the Job fails, no pod replaces it...
+        apiserver.exceed_deadline(NAMESPACE, name)  # ...so its clock running on changes nothing
     reason = assert_cluster_error(committed_sessions, queued.id, run.wait())
-    assert "evict" in reason.lower(), reason
+    assert "(EvictionByEvictionAPI" in reason, reason
+    assert "deadline" not in reason
+
+
+@pytest.mark.parametrize(
+    "disruption",
+    ["EvictionByEvictionAPI", "PreemptionByScheduler"],
+    ids=["evicted-or-drained", "preempted"],
+)
+def test_a_restarted_worker_that_missed_the_eviction_reads_the_jobs_failure_as_the_clusters(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+    disruption: str,
+) -> None:
+    sid, name = queued.id, job_name(queued.id, 1)
+    handed = api.claim(wsettings.worker_name)
+    assert handed is not None
+    killed = threading.Event()
+    first = threading.Thread(
+        target=run_as_job, args=(api, wsettings, handed), kwargs={"stop": killed}
+    )
+    first.start()
+    until(lambda: (NAMESPACE, name) in apiserver.jobs, "the Job")
+    until(lambda: running_watch(wsettings) is not None, "the worker's watch")
+    apiserver.run(NAMESPACE, name)
+    killed.set()  # the worker process goes, and its watch with it
+    first.join(timeout=30)
+    assert not first.is_alive()
+    assert running_watch(wsettings) is None
+    apiserver.evict(NAMESPACE, name, reason=disruption)  # a drain or a preemption meanwhile
+    assert apiserver.pods_of(NAMESPACE, name) == []  # the eviction is lost: only the Job is left
+
+    outcome: list[State | None] = []
+    second = threading.Thread(target=lambda: outcome.append(resume_watch(api, wsettings, sid, 1)))
+    second.start()
+    second.join(timeout=60)
+    assert not second.is_alive()
+    # error, cause cluster, queued again as attempt 2: no quota used
+    reason = assert_cluster_error(committed_sessions, sid, *outcome)
+    assert "was disrupted by the cluster, which failed its Job (PodFailurePolicy: Pod " in reason
+    assert "has condition DisruptionTarget matching FailJob rule at index 0" in reason
 
 
 @pytest.fixture
@@ -812,15 +852,15 @@ def test_a_pod_pending_within_the_timeout_is_waited_for(
 @pytest.mark.parametrize(
     ("disrupt", "expected"),
     [
-        (lambda api, name: api.evict(NAMESPACE, name), "was deleted (evicted, preempted"),
+        (lambda api, name: api.evict(NAMESPACE, name), "which failed its Job (PodFailurePolicy"),
         (
-            lambda api, name: api.evict(NAMESPACE, name, replace=False),
-            "was deleted (evicted, preempted",
+            lambda api, name: api.evict(NAMESPACE, name, reason="PreemptionByScheduler"),
+            "which failed its Job (PodFailurePolicy",
         ),
         (lambda api, name: api.disrupt(NAMESPACE, name), "(EvictionByEvictionAPI"),
         (lambda api, name: api.lose_node(NAMESPACE, name), "(DeletionByTaintManager"),
     ],
-    ids=["evicted-and-deleted", "preempted-not-replaced", "evicted-kept-listed", "node-lost"],
+    ids=["evicted-and-deleted", "preempted", "evicted-kept-listed", "node-lost"],
 )
 def test_a_pod_the_cluster_evicts_or_loses_ends_error_at_once_with_its_reason(
     committed_sessions: sessionmaker[Session],

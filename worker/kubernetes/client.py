@@ -233,8 +233,11 @@ class KubernetesExecutor:
         return list(pods.items)
 
     def pods(self, submission_id: int, attempt: int) -> PodView:
-        """Look into the attempt's pods: a container that cannot start, how the policy ended."""
-        return pod_view(self.job_pods(submission_id, attempt))
+        """Look into the attempt's pods: a container that cannot start, how the policy ended;
+        and into its Job, which records a disruption that failed it after its pods are gone
+        (a worker restarted since the eviction sees only the Job)."""
+        pods = self.job_pods(submission_id, attempt)
+        return pod_view(pods, job=self.status(submission_id, attempt))
 
     def events(self, submission_id: int, attempt: int, *, uid: str = "") -> list[str]:
         """The cluster's warnings about the attempt's Job (a pod the quota refused, say),

@@ -299,7 +299,11 @@ def build_job(spec: JobSpec) -> dict[str, Any]:
         "podFailurePolicy": {
             "rules": [
                 {
-                    "action": "Ignore",  # evicted or preempted: not the policy's fault, rerun
+                    # Evicted, preempted, drained: the Job fails and says so itself (reason
+                    # PodFailurePolicy, `DISRUPTION_RULE` in status), so a worker that missed
+                    # the eviction still charges the cluster. A replacement (Ignore) would run
+                    # on the old deadline, the eviction visible nowhere.
+                    "action": "FailJob",
                     "onPodConditions": [{"type": "DisruptionTarget", "status": "True"}],
                 },
                 {

@@ -38,6 +38,9 @@ class JobStatus:
 
     phase: Phase
     reason: str = ""
+    disrupted: str | None = None
+    """How a pod disruption failed the Job (its podFailurePolicy's FailJob rule on
+    DisruptionTarget): the Job's own record, there when the evicted pod is long gone."""
 
 
 @dataclass(frozen=True)
@@ -123,10 +126,29 @@ def job_status(job: V1Job) -> JobStatus:
     if failed is not None:
         reason = f"{failed.reason or 'Failed'}: {failed.message or ''}".rstrip(": ")
         phase: Phase = "deadline_exceeded" if failed.reason == "DeadlineExceeded" else "failed"
-        return JobStatus(phase, reason)
+        return JobStatus(phase, reason, disrupted=_job_disruption(failed))
     if status is not None and (status.ready or 0) > 0:
         return JobStatus("running")
     return JobStatus("pending")
+
+
+DISRUPTION_RULE = re.compile(
+    r"^Pod [^/\s]+/(?P<pod>\S+) has condition DisruptionTarget matching FailJob rule at index \d+$"
+)
+"""The message of a Job failed by a FailJob rule on a pod condition, DisruptionTarget here:
+`matchPodFailurePolicy` in pkg/controller/job/pod_failure_policy.go writes
+"Pod %s/%s has condition %v matching %v rule at index %d" (namespace, pod, the condition's
+type, the action, the rule's index), under the reason PodFailurePolicy
+(`batch.JobReasonPodFailurePolicy`), on FailureTarget then Failed."""
+
+
+def _job_disruption(failed: Any) -> str | None:
+    """How a pod disruption failed the Job, read from its failure condition alone."""
+    match = DISRUPTION_RULE.match(failed.message or "")
+    if failed.reason != "PodFailurePolicy" or match is None:
+        return None
+    why = f"{failed.reason}: {failed.message}"
+    return f"pod {match['pod']} was disrupted by the cluster, which failed its Job ({why})"
 
 
 def job_ref(job: V1Job) -> JobRef | None:
@@ -156,8 +178,9 @@ def pods_by_index(pods: Iterable[V1Pod]) -> dict[int, V1Pod]:
     return chosen
 
 
-def pod_view(pods: list[V1Pod]) -> PodView:
-    """What an attempt's pods say: a container that cannot start, how the policy ended."""
+def pod_view(pods: list[V1Pod], *, job: JobStatus | None = None) -> PodView:
+    """What an attempt's pods say: a container that cannot start, how the policy ended. A
+    disruption the `job` recorded counts when no pod says it (its pods deleted since)."""
     view = PodView(names=frozenset((p.metadata.name or "") for p in pods if p.metadata))
     for pod in pods:
         status = pod.status
@@ -178,6 +201,8 @@ def pod_view(pods: list[V1Pod]) -> PodView:
             view = _look(view, container, evaluator_end)
         started = view.evaluating
         view = replace(view, evaluating=before or started, started=view.started + started)
+    if view.disrupted is None and job is not None:
+        view = replace(view, disrupted=job.disrupted)
     return view
 
 
@@ -197,7 +222,7 @@ def _pod_index(pod: V1Pod) -> int:
 
 
 def _preference(pod: V1Pod) -> tuple[bool, float]:
-    """A succeeded pod's log first, else the newest pod's (a disrupted one was replaced)."""
+    """A succeeded pod's log first, else the newest pod's."""
     phase = pod.status.phase if pod.status else None
     created = pod.metadata.creation_timestamp if pod.metadata else None
     return (phase == "Succeeded", created.timestamp() if created else 0.0)
