@@ -125,6 +125,8 @@ class WatchRequest:
     opened_at: float = 0.0
     """The cluster's clock (`ClusterClock.elapsed_s`) when the request came: its bookmark
     timer starts there."""
+    cuts: int = 0
+    """`cut_watches` calls before the request came: a later one ends it."""
 
 
 @dataclass
@@ -698,7 +700,7 @@ class ApiServerDouble:
                 and (match := _JOBS.match(parts.path) or _PODS.match(parts.path))
             ):
                 store = "jobs" if "/jobs" in parts.path else "pods"
-                watch = WatchRequest(store, match.group(1), query, self.clock.elapsed_s)
+                watch = WatchRequest(store, match.group(1), query, self.clock.elapsed_s, self._cuts)
                 return (200, watch), None
             if method == "GET":
                 self._sync()  # a list's resourceVersion covers everything changed before it
@@ -742,7 +744,7 @@ class ApiServerDouble:
                 pending, last = [_gone(since)], -1
             else:
                 pending, last = self._events_after(watch.store, int(since), generation, ours)
-            cuts = self._cuts
+        cuts = watch.cuts
         next_bookmark = watch.opened_at + self.bookmark_every  # on the cluster's clock
         while True:
             for event in pending:
