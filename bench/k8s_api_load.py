@@ -5,7 +5,9 @@ second), one thread each as a Celery threads pool would, against the API-server 
 (testkit/k8s_double.py), which counts every request by verb and resource. The double
 plays the cluster: the Job controller starts each Job's pod as it is created, the evaluator
 prints an episode line every `--episode-s` seconds, and after the measured window every Job
-succeeds with a result document (read from its log, as in production). The ManiEval server is
+succeeds with a result document (read from its log, as in production). The cluster's clock
+keeps pace with the wall clock, so that watches get their bookmarks once a minute, as from a
+real API server's watch cache. The ManiEval server is
 an in-process stand-in: its heartbeats and cancel checks are no Kubernetes requests. The
 worker's settings are its defaults (`k8s_poll_interval` 5 s, `k8s_progress_interval` 120 s).
 
@@ -102,6 +104,16 @@ def per_minute(counts: Counter[str], jobs: int, seconds: float) -> dict[str, flo
     return {kind: n / jobs / (seconds / 60) for kind, n in counts.items()}
 
 
+def keep_cluster_time(double: ApiServerDouble, done: threading.Event) -> None:
+    """Move the double's clock (which moves only when told) with the wall clock, until `done`:
+    its watches' bookmarks then come once a minute, as a real API server sends them."""
+    last = time.monotonic()
+    while not done.wait(1.0):
+        now = time.monotonic()
+        double.advance(now - last)
+        last = now
+
+
 def run(args: argparse.Namespace) -> None:
     plan = build_plan(
         load_suite(SUITE),
@@ -122,8 +134,10 @@ def run(args: argparse.Namespace) -> None:
     server = StandInServer()
     stop = threading.Event()
     # The double publishes every change its methods make at once; no direct edits to scan for.
-    with ApiServerDouble(scan_every=5.0, bookmark_every=60.0) as double:
+    with ApiServerDouble(scan_every=5.0) as double:  # bookmarks: once a minute, the default
         double.on_create = lambda namespace, name: double.run(namespace, name)
+        ticking = threading.Event()
+        threading.Thread(target=keep_cluster_time, args=(double, ticking), daemon=True).start()
         settings = settings.model_copy(update={"k8s_api_url": double.host})
         followers = []
         started = time.monotonic()
@@ -169,6 +183,7 @@ def run(args: argparse.Namespace) -> None:
             thread.join(timeout=600)
         ending = double.counts(after)
         stop.set()
+        ticking.set()
 
     states = Counter(s.value for s in server.finals.values())
     report(args, window, start_counts, during, ending, states, done)

@@ -24,12 +24,13 @@ list continuation answers `410 Gone`. An image pull fails and is retried as the 
 (`cannot_pull`, then `pulled`), a node's kubelet refuses pods at admission (`refuse`), logs go
 with their pods (`collect_pods`) or cannot be reached through the kubelet proxy
 (`lose_kubelet`), the garbage collector takes a deleted Job's Secret on a later pass unless it
-blocks the Job's foreground deletion (`collect_garbage`, `gc_paused`), and a proxy can cut
-watches (`watch_cut_after`).
+blocks the Job's foreground deletion (`collect_garbage`, `gc_paused`), a proxy can cut
+watches (`watch_cut_after`) and a restart ends every open one (`cut_watches`).
 
 Jobs and pods can be watched as on a real server (`?watch=true`): newline-delimited events
-(ADDED, MODIFIED, DELETED, BOOKMARK when `allowWatchBookmarks`, ERROR), a resourceVersion per
-object and per list, `resourceVersion` to resume from, `timeoutSeconds` ending the stream, and
+(ADDED, MODIFIED, DELETED, BOOKMARK when `allowWatchBookmarks`, once a minute of the cluster's
+clock as the watch cache sends them, ERROR), a resourceVersion per object and per list,
+`resourceVersion` to resume from, `timeoutSeconds` ending the stream, and
 `410 Gone` (an ERROR event holding a Status, as the real server sends it inside the stream) for
 a version older than the history kept (`expire_watches`, `history_limit`). Every change to a Job
 or pod, through the methods above or by editing `jobs` and `pods` directly, becomes an event:
@@ -124,6 +125,11 @@ class WatchRequest:
     store: str
     namespace: str
     query: dict[str, list[str]]
+    opened_at: float = 0.0
+    """The cluster's clock (`ClusterClock.elapsed_s`) when the request came: its bookmark
+    timer starts there."""
+    cuts: int = 0
+    """`cut_watches` calls before the request came: a later one ends it."""
 
 
 @dataclass
@@ -191,8 +197,14 @@ class ApiServerDouble:
     adds Failed or Complete only once none is left terminating (`settle`). "1.29": the
     terminal condition at once (after a FailureTarget only when the podFailurePolicy failed
     the Job), and running pods are deleted at once."""
-    bookmark_every: float = 1.0
-    """Seconds between BOOKMARK events on a watch that allows them."""
+    bookmark_every: float = 60.0
+    """Seconds of the cluster's clock between BOOKMARK events on a watch that allows them. The
+    watch cache sends them "roughly every minute" (`bookmarkFrequency` in
+    staging/src/k8s.io/apiserver/pkg/storage/cacher/cacher.go; each watcher's
+    `nextBookmarkTime` in cache_watcher.go), so a quiet watch goes a minute without a word.
+    They come as the clock passes them (`advance`, and the second each change takes), never
+    on the wall clock. (The real cache also sends one just before the watch's deadline, which
+    the double keeps on the wall clock; it sends none there.)"""
     scan_every: float = 0.1
     """Seconds between looks for changes made by editing `jobs` or `pods` directly."""
     history_limit: int = 100_000
@@ -204,6 +216,8 @@ class ApiServerDouble:
     _version: int = 1  # the cluster's history began before the test: never "0" (any)
     _compacted: int = 0
     _expiries: int = 0
+    _cuts: int = 0
+    """How many times every open watch was cut (`cut_watches`)."""
     _history: list[tuple[str, Json]] = field(default_factory=list)
     _history_versions: list[int] = field(default_factory=list)
     _published: dict[tuple[str, str, str], Json] = field(default_factory=dict)
@@ -350,6 +364,7 @@ class ApiServerDouble:
             for job in list(self.jobs.values()):
                 if past_active_deadline(job, self.clock.now()):
                     self._deadline_exceeded(job)
+            self._changes.notify_all()  # the watches' bookmarks that fell due
 
     @_publishes
     def exceed_deadline(self, namespace: str, name: str) -> None:
@@ -665,11 +680,16 @@ class ApiServerDouble:
                 self._held -= 1
                 self._sync(everything=True)
 
-    def caught_up(self, version: str | None) -> bool:
-        """Whether a watcher at `version` has seen every change so far."""
+    def caught_up(self, version: str | None, store: str) -> bool:
+        """Whether a watcher of `store` ("jobs" or "pods") at `version` has seen every change
+        to it so far. (Its version passes the other store's changes only with a bookmark, a
+        minute apart.)"""
         with self.lock:
             self._sync(everything=True)
-            return version is not None and int(version) >= self._version
+            if version is None or int(version) < self._compacted:
+                return False
+            start = bisect.bisect_right(self._history_versions, int(version))
+            return all(changed != store for changed, _ in self._history[start:])
 
     def expire_watches(self) -> None:
         """The history is compacted: open watches end with an ERROR event (410 Gone), and
@@ -681,6 +701,13 @@ class ApiServerDouble:
             self._history.clear()
             self._history_versions.clear()
             self._expiries += 1
+            self._changes.notify_all()
+
+    def cut_watches(self) -> None:
+        """Every open watch ends at once, with no event (the API server restarts, or a proxy
+        drops its connections); resuming from the versions seen still works."""
+        with self._changes:
+            self._cuts += 1
             self._changes.notify_all()
 
     def counts(self, since: int = 0) -> Counter[str]:
@@ -708,7 +735,8 @@ class ApiServerDouble:
                 and (match := _JOBS.match(parts.path) or _PODS.match(parts.path))
             ):
                 store = "jobs" if "/jobs" in parts.path else "pods"
-                return (200, WatchRequest(store, match.group(1), query)), None
+                watch = WatchRequest(store, match.group(1), query, self.clock.elapsed_s, self._cuts)
+                return (200, watch), None
             if method == "GET":
                 self._sync()  # a list's resourceVersion covers everything changed before it
             status, payload = self._route(method, parts.path, query, body)
@@ -751,16 +779,17 @@ class ApiServerDouble:
                 pending, last = [_gone(since)], -1
             else:
                 pending, last = self._events_after(watch.store, int(since), generation, ours)
-        next_bookmark = time.monotonic() + self.bookmark_every
+        cuts = watch.cuts
+        next_bookmark = watch.opened_at + self.bookmark_every  # on the cluster's clock
         while True:
             for event in pending:
                 send(event)
             if last < 0:
                 return  # after a 410 the server ends the watch
             now = time.monotonic()
-            if now >= deadline or self._closed:
+            if now >= deadline or self._closed or self._cuts != cuts:
                 return
-            if bookmarks and now >= next_bookmark:
+            if bookmarks and self.clock.elapsed_s >= next_bookmark:
                 meta = {"resourceVersion": str(last)}
                 send(
                     {
@@ -768,11 +797,11 @@ class ApiServerDouble:
                         "object": {"kind": kind, "apiVersion": api_version, "metadata": meta},
                     }
                 )
-                next_bookmark = now + self.bookmark_every
+                next_bookmark = self.clock.elapsed_s + self.bookmark_every
             with self._changes:
                 pending, last = self._events_after(watch.store, last, generation, ours)
-                if not pending and last >= 0:
-                    wait = min(self.scan_every, deadline - now, next_bookmark - now)
+                if not pending and last >= 0 and self._cuts == cuts:
+                    wait = min(self.scan_every, deadline - now)
                     self._changes.wait(max(0.001, wait))
 
     def _events_after(

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import threading
 import urllib.error
@@ -23,7 +24,7 @@ from testkit.waiting import until
 from tests.worker.k8s_specs import (
     make_spec,
 )
-from worker.kubernetes.informer import ClusterWatch
+from worker.kubernetes.informer import ClusterWatch, Failure
 from worker.kubernetes.manifest import build_job
 from worker.kubernetes.status import job_status
 
@@ -101,21 +102,44 @@ def test_a_watch_without_a_version_starts_with_the_current_objects_of_its_select
 
 
 def test_bookmarks_come_only_when_asked_for_and_carry_the_version(apiserver: ApiServerDouble):
-    apiserver.bookmark_every = 0.2
     version = get(apiserver, JOBS)["metadata"]["resourceVersion"]
-    plain = watch_lines(apiserver, f"{JOBS}?watch=true&resourceVersion={version}&timeoutSeconds=1")
-    assert plain == []
-    marked = watch_lines(
-        apiserver,
-        f"{JOBS}?watch=true&resourceVersion={version}&allowWatchBookmarks=true&timeoutSeconds=1",
-    )
-    assert marked
-    assert {e["type"] for e in marked} == {"BOOKMARK"}
-    assert marked[0]["object"] == {
-        "kind": "Job",
-        "apiVersion": "batch/v1",
-        "metadata": {"resourceVersion": version},
-    }
+    with urllib.request.urlopen(
+        apiserver.host + f"{JOBS}?watch=true&resourceVersion={version}&timeoutSeconds=1", timeout=30
+    ) as plain:
+        apiserver.advance(3600)
+        assert plain.read().splitlines() == []
+    version = get(apiserver, JOBS)["metadata"]["resourceVersion"]
+    with urllib.request.urlopen(
+        apiserver.host
+        + f"{JOBS}?watch=true&resourceVersion={version}&allowWatchBookmarks=true&timeoutSeconds=30",
+        timeout=30,
+    ) as marked:
+        apiserver.advance(60)
+        assert json.loads(marked.readline()) == {
+            "type": "BOOKMARK",
+            "object": {
+                "kind": "Job",
+                "apiVersion": "batch/v1",
+                "metadata": {"resourceVersion": version},
+            },
+        }
+
+
+def test_bookmarks_come_once_a_minute_of_the_clusters_clock_as_the_watch_cache_sends_them(
+    apiserver: ApiServerDouble,
+):
+    version = get(apiserver, JOBS)["metadata"]["resourceVersion"]
+    query = f"watch=true&resourceVersion={version}&allowWatchBookmarks=true&timeoutSeconds=30"
+    with urllib.request.urlopen(f"{apiserver.host}{JOBS}?{query}", timeout=30) as stream:
+        apiserver.advance(30)  # half a minute, nothing to say: no bookmark...
+        name = start_job(apiserver)  # (its creation takes the cluster a second)
+        added = json.loads(stream.readline())
+        assert (added["type"], added["object"]["metadata"]["name"]) == ("ADDED", name)
+        apiserver.advance(29)  # ...a minute after the watch began, one
+        bookmark = json.loads(stream.readline())
+        assert bookmark["type"] == "BOOKMARK"
+        version = added["object"]["metadata"]["resourceVersion"]
+        assert bookmark["object"]["metadata"] == {"resourceVersion": version}
 
 
 def test_a_version_older_than_the_history_is_gone_in_the_stream(apiserver: ApiServerDouble):
@@ -217,6 +241,34 @@ def test_an_unreachable_api_server_is_reported_then_forgotten_once_back(
     name = start_job(apiserver)
     until(lambda: cluster.job(name) is not None, "the Job, once the server answers")
     until(lambda: cluster.failing() is None, "the failure forgotten")
+
+
+def test_a_watch_that_opens_again_after_an_outage_ends_the_failure_before_any_event(
+    apiserver: ApiServerDouble,
+):
+    """Bookmarks come once a minute, the watch's timeout in minutes: the watch opening is the
+    sign that the API server is back."""
+    cluster = ClusterWatch(executor_for(apiserver), watch_timeout_s=(300.0, 300.0))
+    seen: list[Failure] = []
+
+    def pause(stop: threading.Event, seconds: float) -> bool:
+        if cluster.jobs.failure is not None:
+            seen.append(copy.copy(cluster.jobs.failure))
+        return stop.is_set()  # no waiting between tries
+
+    cluster.jobs.pause = pause
+    cluster.start()
+    try:
+        until(lambda: cluster.synced, "the first lists")
+        watches = apiserver.counts()["watch jobs"]
+        apiserver.fail_next("GET", "/jobs", 503, 503, 503)
+        apiserver.cut_watches()  # the API server restarts: its watches end, and it refuses
+        until(lambda: cluster.failing() is None and not apiserver.faults, "the failure forgotten")
+        assert [f.error for f in seen] == ["503 Service Unavailable"] * 3
+        assert apiserver.counts()["watch jobs"] == watches + 4  # the last one open, silent
+        assert apiserver.counts()["list jobs"] == 1  # resumed from its version: no list
+    finally:
+        cluster.close()
 
 
 def test_a_410_answering_the_resumed_watch_request_lists_again(

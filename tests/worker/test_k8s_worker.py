@@ -50,7 +50,9 @@ from tests.evaluator.conftest import REPO, SCRIPTED, episode_records
 from tests.worker.k8s_specs import (
     make_spec,
 )
+from worker.kubernetes import informer as informer_module
 from worker.kubernetes import watch as watch_module
+from worker.kubernetes.client import Backoff
 from worker.kubernetes.informer import running_watch
 from worker.kubernetes.manifest import build_job, job_name
 from worker.kubernetes.spec import job_spec
@@ -746,7 +748,8 @@ def looked_twice(
     def caught_up() -> bool:
         watch = running_watch(wsettings)
         return watch is not None and all(
-            apiserver.caught_up(informer.resource_version) for informer in (watch.jobs, watch.pods)
+            apiserver.caught_up(informer.resource_version, informer.kind)
+            for informer in (watch.jobs, watch.pods)
         )
 
     until(caught_up, "the watch to see every change")
@@ -1208,6 +1211,40 @@ def test_a_410_while_a_job_runs_lists_again_and_the_job_is_followed_to_its_end(
         apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, sid)])
     assert run.wait() == State.SUCCEEDED
     assert apiserver.counts()["list jobs"] > lists  # listed again: the 410's remedy
+
+
+def test_an_api_outage_shorter_than_the_workers_tolerance_does_not_end_the_attempt(
+    committed_sessions: sessionmaker[Session],
+    settings: Settings,
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Once back, the API server says nothing for a minute (its first bookmark) or more: the
+    watch opening again is what ends the outage, not the first event."""
+    monkeypatch.setattr(watch_module, "API_OUTAGE_S", 10.0)  # ten minutes in production
+    monkeypatch.setattr(informer_module, "RETRY", Backoff(attempts=1000, base_s=0.05, cap_s=0.2))
+    sid, name = queued.id, job_name(queued.id, 1)
+    run = start(api, wsettings, committed_sessions, apiserver, sid)
+    apiserver.run(NAMESPACE, name)
+    looked_twice(apiserver, wsettings, committed_sessions, sid)
+
+    def phase() -> str | None:
+        return (submission_of(committed_sessions, sid).progress or {}).get("phase")
+
+    apiserver.fail_next("GET", "/jobs", *[503] * 1000)
+    apiserver.cut_watches()  # the API server restarts, and refuses requests for a while
+    until(lambda: phase() == "unknown", "the worker to report the outage")
+    apiserver.clear_faults()  # back, within the worker's tolerance
+    until(
+        lambda: phase() == "running" or not run.thread.is_alive(),
+        "the worker to follow the Job again",
+    )
+    assert run.submission(sid).state == State.RUNNING
+    apiserver.succeed(NAMESPACE, name, [result_of(committed_sessions, settings, sid)])
+    assert run.wait() == State.SUCCEEDED
 
 
 def test_a_restarted_worker_adopts_the_running_job_and_follows_it_to_its_end(

@@ -8,13 +8,16 @@ then watches from the list's resourceVersion with bookmarks; a watch ends after
 cluster costs one request per loop every few minutes. A `410 Gone` (the version was compacted
 away, in the stream or on the request) lists again and resumes from there; other failures are
 retried with backoff and reported by `failing`, so the watchers can tell an outage from a quiet
-Job. A watch that ends at once with nothing in it (a proxy or a restarting server cutting it) is
-opened again after a back-off too, so a cut that repeats never becomes a stream of requests.
+Job; any request the server answers (a list, a watch that opens) ends the failure, for a watch
+may then stay silent for minutes (bookmarks come about once a minute). A watch that ends at once
+with nothing in it (a proxy or a restarting server cutting it) is opened again after a back-off
+too, so a cut that repeats never becomes a stream of requests.
 Followers subscribe by Job name and are woken when their Job or one of its pods changes.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import random
 import threading
@@ -163,7 +166,7 @@ class Informer:
                 self._by_key.setdefault(self.key_of(obj) or "", {})[name] = obj
         self.resource_version = version or None
         self.synced.set()
-        self.failure = None
+        self._answered()
         self.on_change(EVERYONE)  # what changed while unwatched is unknown: everyone looks
 
     def _follow(self, stop: threading.Event) -> bool:
@@ -173,7 +176,7 @@ class Informer:
         timeout = int(random.uniform(*self.watch_timeout_s))
         self._watch = watch.Watch()  # type: ignore[no-untyped-call]
         stream = self._watch.stream(  # type: ignore[no-untyped-call]
-            self.list_call,
+            _telling_answers(self.list_call, self._answered),
             self.namespace,
             label_selector=SELECTOR,
             resource_version=self.resource_version,
@@ -190,6 +193,10 @@ class Informer:
         finally:
             self._watch = None
         return events > 0 or time.monotonic() - began >= SHORT_WATCH_S
+
+    def _answered(self) -> None:
+        """The API server answered a request: whatever failed before is over."""
+        self.failure = None
 
     def _apply(self, event: dict[str, Any]) -> None:
         kind, raw = event["type"], event["raw_object"]
@@ -211,6 +218,20 @@ class Informer:
         for changed in {key, old_key}:
             if changed:
                 self.on_change(changed)
+
+
+def _telling_answers(call: Callable[..., Any], answered: Callable[[], None]) -> Callable[..., Any]:
+    """`call` for a watch, calling `answered` once the server has answered the request (its
+    status line; an error raises instead): the API is back, whatever the stream brings later.
+    Its docstring is kept: the watch reads the return type from it."""
+
+    @functools.wraps(call)
+    def answering(*args: Any, **kwargs: Any) -> Any:
+        response = call(*args, **kwargs)
+        answered()
+        return response
+
+    return answering
 
 
 def _job_key(job: V1Job) -> str | None:

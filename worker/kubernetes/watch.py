@@ -6,15 +6,11 @@ that outnumber the quota (a rollout) never create Jobs the quota would starve. I
 Job (adopting it on 409), then follows it through the process's watch of the cluster
 (`worker.kubernetes.informer`: one list+watch of Jobs and one of pods for every attempt the
 process follows). It looks whenever the Job or its pods change, and every `k8s_poll_interval`
-seconds for its clocks: the Job's conditions decide the end; the pods say when a container can
-never start, and when the cluster, not the policy, stopped the evaluation (`status`): a pod
-evicted, preempted, refused by its node or lost ends the attempt at once, and pods unscheduled,
-pending, never created or whose image does not pull end it after `k8s_pending_timeout_s`, as
-`error` with the cluster's reason and cause (run again once, no quota used), never `timed_out`.
-Progress is the evaluator's log, read every `k8s_progress_interval` seconds while it runs; the
-result is read from the log once, at the end, by this process (a log lost with its pod or node
-is the cluster's). Between looks the worker asks the server every second whether the attempt
-still runs: a cancel deletes the Job at once, and the evaluator, on SIGTERM, stops.
+seconds for its clocks: the pods say when a container can never start, and when the cluster,
+not the policy, stopped the evaluation (`pod_history`); the Job's end decides the attempt's
+(`ended_job`). Progress is the evaluator's log, read every `k8s_progress_interval` seconds
+while it runs. Between looks the worker asks the server every second whether the attempt still
+runs: a cancel deletes the Job at once, and the evaluator, on SIGTERM, stops.
 """
 
 from __future__ import annotations
@@ -28,38 +24,22 @@ from typing import Any
 
 from kubernetes.client import V1Pod
 
-from evaluator.job import JobOutputError, result_from_logs
 from evaluator.plan import EvaluationPlan
-from evaluator.sources import LOG_TAIL_BYTES
 from internal_api.schemas import Assignment, ErrorCause, FinalReport, ReportOut, State
 from worker.kubernetes.client import (
     JobConflict,
     KubernetesError,
     KubernetesExecutor,
-    LogLost,
     kubernetes_executor,
 )
+from worker.kubernetes.ended_job import final_report
 from worker.kubernetes.informer import ClusterWatch, Failure, cluster_watch
-from worker.kubernetes.manifest import (
-    EVALUATOR,
-    POLICY,
-    JobSpec,
-    build_job,
-    job_name,
-)
+from worker.kubernetes.manifest import EVALUATOR, JobSpec, build_job, job_name
+from worker.kubernetes.pod_history import PodHistory
 from worker.kubernetes.quota import demand, never_fits, shortfall
 from worker.kubernetes.spec import job_spec
-from worker.kubernetes.status import (
-    STOPPED,
-    JobStatus,
-    PodView,
-    Verdict,
-    job_status,
-    pending_verdict,
-    pod_view,
-    progress_in,
-)
-from worker.outcome import conclusion, ended
+from worker.kubernetes.status import JobStatus, job_status, pod_view, progress_in
+from worker.outcome import ended
 from worker.server_api import ServerAPI, ServerUnavailable
 from worker.settings import WorkerSettings
 
@@ -69,7 +49,6 @@ JOB_DEADLINE_GRACE_S = 300.0
 """Beyond the Job's activeDeadlineSeconds (Kubernetes stops it there), before the reconciler
 times the attempt out: time to see the Job end and report it."""
 API_OUTAGE_S = 600.0  # the API server unreachable this long: the attempt ends `error`
-POLICY_LOG_LINES = 400
 CANCEL_CHECK_S = 1.0  # between looks, a heartbeat this often: a cancel stops the Job at once
 CLUSTER = ErrorCause.CLUSTER
 _ROOM = object()  # `_until_room`'s answer when the Job may be created
@@ -126,7 +105,8 @@ def _watch_for(
 ) -> _Watch:
     spec = job_spec(settings, handed)
     executor = kubernetes_executor(settings)
-    return _Watch(api, settings, executor, spec, handed.plan, stop or threading.Event())
+    pods = PodHistory(spec.shards, settings.k8s_pending_timeout_s)
+    return _Watch(api, settings, executor, spec, handed.plan, stop or threading.Event(), pods)
 
 
 def _guarded(watch: _Watch, body: Callable[[], State | None]) -> State | None:
@@ -147,14 +127,13 @@ class _Watch:
     spec: JobSpec
     plan: EvaluationPlan
     stop: threading.Event
+    pods: PodHistory
     _read_progress: dict[str, Any] = field(default_factory=dict)
     _progress_at: float | None = None
     """When the log was last read for progress (first: when the evaluator was seen started)."""
     _room_checked_at: float = -1e9
     _outage_since: float | None = None
     _state: State | None = None
-    _pending_since: float | None = None
-    _seen: frozenset[str] = frozenset()
     _uid: str = ""
     """The uid of the Job this watch created (empty when it resumed someone else's watch)."""
     _quotas_read: bool = False
@@ -275,7 +254,7 @@ class _Watch:
             # Not (yet) in the watch's cache: created a moment ago, or gone. Ask.
             status = job_status(job) if job is not None else self.executor.status(*self.ids)
             if status.phase not in ("pending", "running"):
-                return self._concluded(status)
+                return self._finish(final_report(self.executor, self.spec, self.plan, status))
             ended = self._look(status, cluster.pods_of(self.spec.name))
         except KubernetesError as exc:
             now = time.monotonic()
@@ -301,7 +280,7 @@ class _Watch:
             return self._make_room()
         if view.stuck is not None:
             return self.end(State.ERROR, f"the evaluation could not start: {view.stuck}")
-        verdict = self._stopped(view)
+        verdict = self.pods.stopped(view, self._job_runs, self._warnings)
         if verdict is not None:
             return self.end(State.ERROR, verdict.reason, cause=verdict.cause)
         progress: dict[str, Any] = {"phase": status.phase, "done": 0}
@@ -317,32 +296,8 @@ class _Watch:
             return self._cancelled()
         return None
 
-    def _stopped(self, view: PodView) -> Verdict | None:
-        """The cluster's doing, said as it says it: a pod evicted, preempted, refused or lost
-        with its node (deleted or not); or pods not started past `k8s_pending_timeout_s`
-        (`pending_verdict`: an image that does not pull, unschedulable, refused by a
-        ResourceQuota, never created). None while the Job may still run."""
-        if view.disrupted is not None:
-            return Verdict(STOPPED + view.disrupted)
-        gone = sorted(self._seen - view.names)
-        if gone and self.executor.status(*self.ids).phase in ("pending", "running"):
-            # A live pod vanished while the Job runs on (not its deadline, which deletes pods
-            # too): evicted and deleted, preempted, or garbage-collected with a lost node.
-            return Verdict(f"{STOPPED}pod {gone[0]} was deleted (evicted, preempted, or lost)")
-        if gone:
-            return None  # the Job has just ended: the next look concludes it
-        self._seen = view.alive
-        now = time.monotonic()
-        if view.started >= self.spec.shards:
-            self._pending_since = None
-            return None
-        if self._pending_since is None:
-            self._pending_since = now
-            return None
-        waited = now - self._pending_since
-        if waited <= self.settings.k8s_pending_timeout_s:
-            return None  # an image pull the kubelet retries, a node the autoscaler adds
-        return pending_verdict(view, waited, self._warnings)
+    def _job_runs(self) -> bool:
+        return self.executor.status(*self.ids).phase in ("pending", "running")
 
     def _room_taken(self) -> bool:
         """Whether the quota refused this Job's pods: another worker took the room between
@@ -377,7 +332,8 @@ class _Watch:
         except KubernetesError as exc:
             reason = f"cannot create the evaluation Job again: {exc}"
             return self.end(State.ERROR, reason, cause=CLUSTER)
-        self._uid, self._seen, self._pending_since = started.uid, frozenset(), None
+        self._uid = started.uid
+        self.pods.forget()
         self._quotas_read = room is _ROOM
         running = self._running()  # the new Job's clock starts now, and so does the attempt's
         if running is None or not running.applied:  # ended or replaced meanwhile
@@ -415,52 +371,13 @@ class _Watch:
         self._state = out.state
         return out.applied
 
-    def _concluded(self, status: JobStatus) -> State | None:
-        if status.phase == "succeeded":
-            return self._collect()
-        if status.phase == "missing":
-            reason = f"the evaluation's Job {self.spec.name} disappeared"
-            return self.end(State.ERROR, reason, cause=CLUSTER)
-        disrupted = self.executor.pods(*self.ids).disrupted  # evicted, refused by its node...
-        if disrupted is not None:  # ...the cluster's doing, not the policy's
-            then = " and it then ran out of time" if status.phase == "deadline_exceeded" else ""
-            reason = f"the cluster stopped the evaluation{then}: {disrupted}"
-            return self.end(State.ERROR, reason, cause=CLUSTER)
-        if status.phase == "deadline_exceeded":  # it covers the whole plan (`active_deadline_for`):
-            # the cluster ran it too slowly, the policy's budget being the evaluator's to enforce
-            reason = f"{STOPPED}its Job ran past its deadline ({status.reason})"
-            return self.end(State.ERROR, reason, cause=CLUSTER)
-        return self.end(State.ERROR, f"the evaluator failed ({status.reason})")
-
-    def _collect(self) -> State | None:
-        try:  # the one read of the logs: the pods listed now, not as the watch last saw them
-            pods, logs = self.executor.result_logs(*self.ids, self.spec.shards)
-            result = result_from_logs(self.plan, logs)
-        except LogLost as exc:  # gone with its pod or node: the cluster's doing
-            return self.end(State.ERROR, f"the evaluation's log was lost: {exc}", cause=CLUSTER)
-        except (KubernetesError, JobOutputError) as exc:
-            return self.end(State.ERROR, f"the evaluation's result could not be read: {exc}")
-        policy_ended, policy_log = self._policy_side(pods)
-        state = self._report(conclusion(result, log_tail=policy_log, detail=policy_ended))
-        self._delete()
-        return state
-
-    def _policy_side(self, pods: list[V1Pod]) -> tuple[str | None, str]:
-        """How the policy container ended and its log tail: extras that never cost a result."""
-        view = pod_view(pods)
-        try:
-            logs = self.executor.logs(
-                pods, self.spec.shards, container=POLICY, tail_lines=POLICY_LOG_LINES
-            )
-        except KubernetesError as exc:
-            log.warning("Job %s: the policy's side could not be read: %s", self.spec.name, exc)
-            return None, ""
-        text = "\n".join(log.rstrip("\n") for log in logs if log)
-        return view.policy_ended, text[-LOG_TAIL_BYTES:]
-
     def end(self, state: State, reason: str, *, cause: ErrorCause | None = None) -> State | None:
-        log.info("Job %s: %s: %s", self.spec.name, state.value, reason)
-        final = self._report(ended(state, reason, cause=cause))
+        return self._finish(ended(state, reason, cause=cause))
+
+    def _finish(self, report: FinalReport) -> State | None:
+        """Report the attempt's end, then delete its Job."""
+        log.info("Job %s: %s: %s", self.spec.name, report.state.value, report.reason)
+        final = self._report(report)
         self._delete()
         return final
 
