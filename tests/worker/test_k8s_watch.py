@@ -342,3 +342,16 @@ def test_watches_cut_at_once_are_opened_again_after_a_growing_delay_reset_by_one
         assert cluster.job(make_spec().name) is not None
     finally:
         cluster.close()
+
+
+def test_closing_ends_watches_at_once_with_no_event_to_wake_them(apiserver: ApiServerDouble):
+    """Between bookmarks (a minute apart) a watch waits on a silent stream: closing shuts its
+    socket, so the informers' threads end without an event."""
+    cluster = ClusterWatch(executor_for(apiserver), watch_timeout_s=(300.0, 300.0))
+    cluster.start()
+    until(lambda: cluster.synced, "the first lists")
+    until(lambda: apiserver.counts().get("watch pods", 0) >= 1, "the pods' watch open")
+    cluster.close()
+    threads = cluster._threads
+    until(lambda: not any(t.is_alive() for t in threads), "the informers' threads ended")
+    assert cluster.failing() is None
