@@ -355,3 +355,33 @@ def test_closing_ends_watches_at_once_with_no_event_to_wake_them(apiserver: ApiS
     threads = cluster._threads
     until(lambda: not any(t.is_alive() for t in threads), "the informers' threads ended")
     assert cluster.failing() is None
+
+
+def test_closing_while_a_watch_request_is_on_its_way_ends_it_once_answered(
+    apiserver: ApiServerDouble,
+):
+    """`close` may come after a list and before the watch's answer, with no response to shut
+    down yet: the watch is shut down as its answer comes, not left open until an event (none
+    comes here: the double's clock stands still, so no bookmark either)."""
+    cluster = ClusterWatch(executor_for(apiserver), watch_timeout_s=(300.0, 300.0))
+    stopped = threading.Event()
+    listing, stopping = cluster.jobs.list_call, cluster.jobs.stop
+
+    def sent_after_the_stop(*args: Any, **kwargs: Any) -> Any:
+        if kwargs.get("watch"):
+            stopped.wait(60)  # the request leaves once `close` has looked for a response
+        return listing(*args, **kwargs)
+
+    def stop_then_send() -> None:
+        stopping()
+        stopped.set()
+
+    sent_after_the_stop.__doc__ = listing.__doc__  # the client reads the type from it
+    cluster.jobs.list_call, cluster.jobs.stop = sent_after_the_stop, stop_then_send  # type: ignore[method-assign]
+    cluster.start()
+    until(lambda: cluster.synced, "the first lists")
+    cluster.close()
+    thread = cluster._threads[0]
+    until(lambda: not thread.is_alive(), "the jobs' informer ended")
+    assert apiserver.counts()["watch jobs"] == 1  # it was answered, then shut down
+    assert cluster.failing() is None

@@ -544,7 +544,7 @@ def test_a_bug_while_watching_still_ends_the_attempt_and_removes_the_job(
 
     monkeypatch.setattr(watch_module, "pod_view", broken)
     name = job_name(queued.id, 1)
-    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
+    run = Run(api, wsettings, committed_sessions)  # the Job may end before a look at it
     assert run.wait() == State.ERROR
     assert run.submission(queued.id).reason == "the worker failed: RuntimeError: unexpected"
     assert (name, "Foreground") in apiserver.deletions

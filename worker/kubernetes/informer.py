@@ -131,7 +131,8 @@ class Informer:
 
     def stop(self) -> None:
         """Unblock a watch waiting on the server: its socket is shut down, so the read ends at
-        once, not at the next event (a minute away between bookmarks)."""
+        once, not at the next event (a minute away between bookmarks). Call it once the event
+        its `run` was given is set."""
         current = self._watch
         if current is not None:
             current.stop()  # type: ignore[no-untyped-call]
@@ -180,10 +181,12 @@ class Informer:
         """One watch request, from `resource_version` to the server's end of it; whether it
         lasted (`SHORT_WATCH_S`, or brought an event)."""
         began, events = time.monotonic(), 0
+        if stop.is_set():  # stopped while listing: no watch to open
+            return True
         timeout = int(random.uniform(*self.watch_timeout_s))
         self._watch = watch.Watch()  # type: ignore[no-untyped-call]
         stream = self._watch.stream(  # type: ignore[no-untyped-call]
-            _telling_answers(self.list_call, self._answered),
+            _telling_answers(self.list_call, lambda response: self._answered(response, stop)),
             self.namespace,
             label_selector=SELECTOR,
             resource_version=self.resource_version,
@@ -201,10 +204,14 @@ class Informer:
             self._watch, self._response = None, None
         return events > 0 or time.monotonic() - began >= SHORT_WATCH_S
 
-    def _answered(self, response: Any) -> None:
+    def _answered(self, response: Any, stop: threading.Event) -> None:
         """The API server answered the watch request: whatever failed before is over. Its
-        response is kept for `stop`."""
+        response is kept for `stop`; where `stop` came while the request was on its way, the
+        watch is shut down here (`stop` set before `stop()` reads the response: one of the two
+        sees the other's), else it would wait for the next event, a minute away."""
         self.failure, self._response = None, response
+        if stop.is_set():
+            _shut_down(response)
 
     def _apply(self, event: dict[str, Any]) -> None:
         kind, raw = event["type"], event["raw_object"]
