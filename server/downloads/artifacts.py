@@ -4,6 +4,7 @@ template with the SDK inside, ready for `podman build`."""
 
 from __future__ import annotations
 
+import gzip
 import io
 import re
 import tarfile
@@ -11,6 +12,7 @@ import tomllib
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 from server.downloads.wheel import WheelSpec, build_wheel
 
@@ -21,6 +23,7 @@ TEMPLATE = REPO / "examples" / "policy-template"
 TEMPLATE_FILE = "policy-template.tar.gz"
 TEMPLATE_DIR = "my-policy"  # what the archive unpacks to
 WHEEL_TYPE = "application/zip"
+EPOCH_SECONDS = 315532800  # 1980-01-01, the wheels' zip time
 
 # The CLI's modules that compose the service (they import the server, the worker or the
 # simulator): left out of the slim CLI, whose `manieval serve`, `demo`, `db`, `admin`,
@@ -46,8 +49,8 @@ class Download:
     media_type: str
 
 
-def _project(pyproject: Path) -> dict[str, object]:
-    project: dict[str, object] = tomllib.loads(pyproject.read_text())["project"]
+def _project(pyproject: Path) -> dict[str, Any]:
+    project: dict[str, Any] = tomllib.loads(pyproject.read_text())["project"]
     return project
 
 
@@ -81,7 +84,7 @@ def sdk_spec() -> WheelSpec:
         name=str(project["name"]),
         version=str(project["version"]),
         summary=str(project["description"]),
-        requires=[str(r) for r in project["dependencies"]],  # type: ignore[attr-defined]
+        requires=[str(r) for r in project["dependencies"]],
         requires_python=str(project["requires-python"]),
         files=_package_files(SDK_PROJECT / "manieval_sdk", prefix="manieval_sdk"),
     )
@@ -93,7 +96,7 @@ def cli_spec() -> WheelSpec:
     if not (CLI_PACKAGE / "cli.py").is_file():
         raise NotServed("the CLI's sources are not installed beside this service")
     project = _project(REPO / "pyproject.toml")
-    pinned = {_requirement_name(str(r)): str(r) for r in project["dependencies"]}  # type: ignore[attr-defined]
+    pinned = {_requirement_name(str(r)): str(r) for r in project["dependencies"]}
     return WheelSpec(
         name="manieval-cli",
         version=str(project["version"]),
@@ -117,13 +120,22 @@ def template_archive() -> bytes:
     }
     files |= _package_files(SDK_PROJECT / "manieval_sdk", prefix=f"{TEMPLATE_DIR}/manieval_sdk")
     out = io.BytesIO()
-    with tarfile.open(fileobj=out, mode="w:gz", format=tarfile.PAX_FORMAT) as archive:
+    # Times fixed (the gzip header's too): the same bytes on every build, as the wheels.
+    with (
+        gzip.GzipFile(fileobj=out, mode="wb", mtime=0) as zipped,
+        tarfile.open(fileobj=zipped, mode="w", format=tarfile.PAX_FORMAT) as archive,
+    ):
         for path, data in sorted(files.items()):
             member = tarfile.TarInfo(path)
-            member.size, member.mode = len(data), 0o644
-            member.mtime = 315532800  # 1980-01-01, as the wheels' EPOCH
+            member.size, member.mode, member.mtime = len(data), 0o644, EPOCH_SECONDS
             archive.addfile(member, io.BytesIO(data))
     return out.getvalue()
+
+
+@cache
+def wheel_files() -> tuple[str, ...]:
+    """The wheels' file names, the SDK's first: what the getting-started page installs."""
+    return tuple(spec().filename for spec in (sdk_spec, cli_spec))
 
 
 @cache

@@ -13,7 +13,7 @@ from fastapi.responses import Response
 from server.accounts.deps import ViewerDep
 from server.challenges.contract import contract_of
 from server.challenges.service import get_challenge, suite_of
-from server.downloads.artifacts import TEMPLATE_DIR, cli_spec, sdk_spec
+from server.downloads.artifacts import TEMPLATE_DIR, wheel_files
 from server.kit.deps import DBDep
 from server.kit.pages import render
 from server.models import Challenge
@@ -47,7 +47,7 @@ def start_commands(
     base = str(request.base_url).rstrip("/")
     server = server_flag(request)
     name = username or PLACEHOLDER_NAME
-    wheels = " ".join(f"{base}/downloads/{spec().filename}" for spec in (sdk_spec, cli_spec))
+    wheels = " ".join(f"{base}/downloads/{name}" for name in wheel_files())
     account = (
         [] if username else [f"manieval register -u {name} --email {PLACEHOLDER_EMAIL}{server}"]
     )

@@ -282,7 +282,13 @@ def test_the_getting_started_page_takes_a_fresh_virtualenv_to_a_ranked_submissio
             line = line.replace("NAME", "starter")  # the placeholder the page asks to fill
             answers = {"register": 2, "login": 1}.get(line.split()[1], 0)
             done = subprocess.run(
-                ["bash", "-euo", "pipefail", "-c", "\n".join([*sourced, line])],
+                [
+                    "bash",
+                    "-euo",
+                    "pipefail",
+                    "-c",
+                    "\n".join([*([] if simulator else sourced), line]),
+                ],
                 cwd=tmp_path,
                 env=env,
                 input=(PASSWORD + "\n") * answers if line.startswith("manieval") else "",
@@ -302,6 +308,7 @@ def test_the_getting_started_page_takes_a_fresh_virtualenv_to_a_ranked_submissio
             )
             found = subprocess.run(
                 [str(venv), "-c", check],
+                cwd=tmp_path,
                 env=terminal_env(embedded, tmp_path, simulator=False),
                 capture_output=True,
                 text=True,
