@@ -16,7 +16,9 @@ def download(filename: str) -> Response:
     """One download, built from the sources this service runs."""
     found = downloads().get(filename)
     if found is None:
-        raise NotFound(f"no download {filename!r}: see /downloads/ on the getting-started page")
+        raise NotFound(
+            f"no download {filename!r}: a challenge's getting-started page names those there are"
+        )
     return Response(
         found.content,
         media_type=found.media_type,
