@@ -19,7 +19,7 @@ import typer
 from typer.core import TyperCommand, TyperGroup
 
 from manieval import account, compare, participant, push, teams
-from manieval.errors import ExitCode
+from manieval.errors import ExitCode, not_installed
 from manieval.evaluate import evaluate
 
 PARTICIPATE = "Take part (against a server)"
@@ -37,7 +37,10 @@ class Deferred:
 
     def load(self, name: str) -> Any:
         """The real command (a Click command or group)."""
-        found = getattr(import_module(self.module), self.attribute)
+        try:
+            found = getattr(import_module(self.module), self.attribute)
+        except ModuleNotFoundError as exc:
+            raise typer.Exit(not_installed(f"manieval {name}", exc)) from None
         if isinstance(found, typer.Typer):
             group = typer.main.get_group(found)
             group.name = name

@@ -158,3 +158,16 @@ def quota_exceeded(exc: ApiError) -> NoReturn:
         f"the next submission is possible at {render.local_time(exc.resets_at)}"
         f" (in {render.duration(left)})",
     )
+
+
+FULL_INSTALL = (
+    "it is part of the whole of ManiEval (the server, the worker and the simulator), which the "
+    "participant's `manieval-cli` leaves out: install ManiEval from its repository "
+    "(`make install`) to run it"
+)
+
+
+def not_installed(command: str, exc: ModuleNotFoundError) -> ExitCode:
+    """Say that `command` needs the whole of ManiEval (`exc`: the module missing)."""
+    typer.echo(f"error: {command} cannot run here (no module {exc.name}): {FULL_INSTALL}", err=True)
+    return ExitCode.USAGE

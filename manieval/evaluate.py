@@ -24,6 +24,7 @@ from rich.table import Table
 from rich.text import Text
 
 from manieval import render
+from manieval.errors import not_installed
 from manieval.policy_output import FileOutput, LiveOutput, PolicyOutput, policy_output, shown
 
 if TYPE_CHECKING:  # the evaluator (torch, SAPIEN) is imported when the command runs
@@ -89,10 +90,13 @@ def evaluate(
     ] = None,
 ) -> None:
     """Evaluate a policy on a benchmark suite and print per-task success rates."""
-    from evaluator.packages import pin
-    from evaluator.plan import build_plan
-    from evaluator.sources import PolicySourceError
-    from evaluator.suite import SuiteError, load_suite
+    try:
+        from evaluator.packages import pin
+        from evaluator.plan import build_plan
+        from evaluator.sources import PolicySourceError
+        from evaluator.suite import SuiteError, load_suite
+    except ModuleNotFoundError as exc:  # the participant's slim CLI has no simulator
+        raise typer.Exit(not_installed("manieval evaluate", exc)) from None
 
     try:
         plan = build_plan(

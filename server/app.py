@@ -22,6 +22,7 @@ from server.accounts import pages as accounts_pages
 from server.accounts.deps import error_page_viewer
 from server.challenges import api as challenges_api
 from server.challenges import pages as challenges_pages
+from server.downloads import api as downloads_api
 from server.kit import pages
 from server.kit.apidocs import mount_api_docs
 from server.kit.db import make_engine, session_factory
@@ -35,7 +36,7 @@ from server.leaderboard import pages as leaderboard_pages
 from server.registry import api as registry_api
 from server.services import Services
 from server.submissions import api as submissions_api
-from server.submissions import events, internal, submit_pages
+from server.submissions import events, internal, start_page, submit_pages
 from server.submissions import pages as submissions_pages
 from server.submissions import trajectories as submissions_trajectories
 from server.submissions import videos as submissions_videos
@@ -137,6 +138,7 @@ def create_app(
     app.include_router(registry_api.router)
     app.include_router(registry_api.public)
     app.include_router(teams_api.router)
+    app.include_router(downloads_api.router)
     pages.install(
         app,
         [
@@ -146,6 +148,7 @@ def create_app(
             leaderboard_pages.router,
             help_page.router,
             submit_pages.router,
+            start_page.router,
             submissions_pages.router,
             events.router,
             teams_pages.router,

@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session as DB
 from server.accounts.deps import PostedDep, ViewerDep
 from server.challenges.quota import quota_use
 from server.challenges.service import get_challenge, get_phase, policy_refusal
+from server.downloads.artifacts import TEMPLATE_DIR, TEMPLATE_FILE
 from server.kit.deps import DBDep, limit
 from server.kit.errors import AppError, Forbidden, Invalid
 from server.kit.pages import Viewer, redirect, render, signed_in
@@ -87,8 +88,7 @@ def push_commands(request: Request, *, user: User, challenge: Challenge) -> Push
     if domain is None:
         return None
     namespace = namespace_for(user.username) or user.username
-    base = str(request.base_url).rstrip("/")
-    server = "" if base == DEFAULT_CLI_SERVER else f" --server {base}"
+    server = server_flag(request)
     tls = (
         " --tls-verify=false" if domain in settings.insecure_registries or _loopback(domain) else ""
     )
@@ -97,17 +97,28 @@ def push_commands(request: Request, *, user: User, challenge: Challenge) -> Push
         registry=domain,
         namespace=namespace,
         login=f"manieval login -u {user.username}{server}",
-        build=[
-            "docker/policy-base/build.sh  # the base image, once (as root)",
-            "cp -r examples/policy-template my-policy",
-            "cp -r evaluator/sdk/manieval_sdk my-policy/",
-            "podman build -t my-policy:v1 my-policy",
-        ],
+        build=template_commands(request),
         push=f"manieval push my-policy:v1 --challenge {challenge.slug} --wait{server}",
         engine_login=f"podman login{tls} -u {user.username} {domain}",
         engine_push=f"podman push{tls} my-policy:v1 {tagged}",
         example=tagged,
     )
+
+
+def server_flag(request: Request) -> str:
+    """` --server URL` for this service, or nothing where `manieval` reaches it by default."""
+    base = str(request.base_url).rstrip("/")
+    return "" if base == DEFAULT_CLI_SERVER else f" --server {base}"
+
+
+def template_commands(request: Request) -> list[str]:
+    """Download the policy template (the SDK inside) from this service and build its image."""
+    base = str(request.base_url).rstrip("/")
+    return [
+        f"curl -fsSLO {base}/downloads/{TEMPLATE_FILE}",
+        f"tar xzf {TEMPLATE_FILE}  # unpacks {TEMPLATE_DIR}/, with the SDK beside its Dockerfile",
+        f"podman build -t my-policy:v1 {TEMPLATE_DIR}",
+    ]
 
 
 def _loopback(domain: str) -> bool:

@@ -1,11 +1,14 @@
 """A new participant's path on the embedded default, against a real `manieval serve` with the
 registry and Podman it started: register, log in (the engine too), build the policy template
-with Podman, `manieval push --wait`; and what `manieval push` says when it cannot."""
+with Podman, `manieval push --wait`; and what `manieval push` says when it cannot. Last, the
+getting-started page's commands, run as they are in a fresh virtualenv, to a ranked row."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,8 +16,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.cli.conftest import Participant, free_port
+from tests.cli.conftest import Participant, clean_environment, free_port
 from tests.cli.push_support import (
+    BUILT,
     CHALLENGE,
     TAG,
     VISUAL_CHALLENGE,
@@ -24,6 +28,8 @@ from tests.cli.push_support import (
     build_template,
     embedded_service,
 )
+from tests.web.start_commands import page_commands
+from tests.worker.container_fixtures import CONTAINERS_CONF
 
 pytestmark = [pytest.mark.sim, pytest.mark.long]
 
@@ -99,7 +105,8 @@ def test_a_participant_pushes_the_template_and_it_is_ranked(embedded: Embedded) 
     assert [t["success_rate"] for t in final["tasks"]] == [
         t["success_rate"] for c in doc["conditions"] for t in c["tasks"]
     ]
-    assert [(row["username"], row["submission_id"]) for row in board] == [("alice", final["id"])]
+    rows = [(row["username"], row["submission_id"]) for row in board]
+    assert [row for row in rows if row[0] == "alice"] == [("alice", final["id"])]
 
     # The engine's word, not the server's: Podman started a container of the pinned image.
     events = subprocess.run(
@@ -218,3 +225,101 @@ def test_an_openpi_server_image_is_pushed_and_ranked_on_the_visual_track(
     # Every step answered by the server in the image, through the bridge.
     assert [(e["failure"], e["steps"]) for e in episodes] == [(None, 12)], episodes
     assert [(row["username"], row["submission_id"]) for row in board] == [("olga", final["id"])]
+
+
+# What the participant's slim virtualenv must not hold: the server's, the worker's and the
+# simulator's packages.
+SERVER_SIDE = ("fastapi", "sqlalchemy", "celery", "torch", "mani_skill", "sapien", "server")
+OFFLINE_INDEX = "file:///opt/pypi/simple"  # this machine's copy of the index: no internet
+
+
+def terminal_env(embedded: Embedded, home: Path, *, simulator: bool) -> dict[str, str]:
+    """A participant's terminal: nothing of this test's virtualenv on PATH or PYTHONPATH (the
+    page's `manieval` is the one it installs), unless the step needs the simulator, which the
+    page says the whole of ManiEval brings (this virtualenv, with the sources under test)."""
+    env = clean_environment()
+    project_bin = str(Path(sys.executable).parent)
+    if simulator:
+        env["PATH"] = os.pathsep.join([project_bin, env.get("PATH", "")])
+    else:
+        for name in ("PYTHONPATH", "VIRTUAL_ENV", "PYTHONHOME"):
+            env.pop(name, None)
+        paths = env.get("PATH", "").split(os.pathsep)
+        env["PATH"] = os.pathsep.join(p for p in paths if p != project_bin)
+    return env | {
+        "MANIEVAL_CONFIG_DIR": str(home / "config"),
+        "PIP_INDEX_URL": OFFLINE_INDEX,
+        "COLUMNS": "200",
+        **embedded.engine_env("starter"),
+        "CONTAINERS_CONF": str(CONTAINERS_CONF),
+    }
+
+
+def test_the_getting_started_page_takes_a_fresh_virtualenv_to_a_ranked_submission(
+    embedded: Embedded, tmp_path: Path
+) -> None:
+    from testkit.factories import PASSWORD
+
+    page = httpx.get(f"{embedded.server.url}/challenges/{CHALLENGE}/start", timeout=30)
+    assert page.status_code == 200, page.text
+    blocks = page_commands(page.text)
+    assert [b.step for b in blocks] == [
+        "install",
+        "account",
+        "template",
+        "evaluate",
+        "build",
+        "push",
+        "board",
+    ]
+    BUILT.append("localhost/my-policy:v1")  # the page's tag, removed with the module's images
+    sourced: list[str] = []  # `. manieval-env/bin/activate`: it holds for the lines after it
+    said: dict[str, str] = {}
+    for block in blocks:
+        simulator = block.needs == "simulator"
+        env = terminal_env(embedded, tmp_path, simulator=simulator)
+        for line in block.lines:
+            line = line.replace("NAME", "starter")  # the placeholder the page asks to fill
+            answers = {"register": 2, "login": 1}.get(line.split()[1], 0)
+            done = subprocess.run(
+                [
+                    "bash",
+                    "-euo",
+                    "pipefail",
+                    "-c",
+                    "\n".join([*([] if simulator else sourced), line]),
+                ],
+                cwd=tmp_path,
+                env=env,
+                input=(PASSWORD + "\n") * answers if line.startswith("manieval") else "",
+                capture_output=True,
+                text=True,
+                timeout=900,
+                start_new_session=True,  # no terminal: the password prompts read stdin
+            )
+            assert done.returncode == 0, f"$ {line}\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+            said[block.step] = said.get(block.step, "") + done.stdout + done.stderr
+            if line.startswith(". ") and not simulator:
+                sourced.append(line)
+        if block.step == "install":
+            venv = tmp_path / "manieval-env" / "bin" / "python"
+            check = (
+                f"import importlib.util as u; print([m for m in {SERVER_SIDE!r} if u.find_spec(m)])"
+            )
+            found = subprocess.run(
+                [str(venv), "-c", check],
+                cwd=tmp_path,
+                env=terminal_env(embedded, tmp_path, simulator=False),
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
+            assert found.stdout.strip() == "[]", found.stdout + found.stderr
+
+    assert "succeeded" in said["push"], said["push"]
+    assert "starter" in said["board"], said["board"]
+    with httpx.Client(base_url=embedded.server.url, timeout=30) as http:
+        board = http.get(f"/api/v1/challenges/{CHALLENGE}/leaderboard").json()["items"]
+    ranks = [row["rank"] for row in board if row["username"] == "starter"]
+    assert len(ranks) == 1, board
+    assert ranks[0] is not None, board  # ranked, not a baseline

@@ -75,3 +75,18 @@ def test_deferred_commands_are_listed_run_and_suggested() -> None:
     typo = runner.invoke(app, ["demoo"])
     assert typo.exit_code == 2
     assert "Did you mean 'demo'?" in typo.output
+
+
+def test_a_deferred_command_whose_modules_are_missing_says_how_to_get_them(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from typer import Exit
+
+    from manieval.cli import Deferred
+
+    with pytest.raises(Exit) as stopped:
+        Deferred("manieval.not_in_the_slim_cli", "serve").load("serve")
+    assert stopped.value.exit_code == 2
+    said = capsys.readouterr().err
+    assert "manieval serve cannot run here (no module manieval.not_in_the_slim_cli)" in said
+    assert "make install" in said

@@ -54,7 +54,7 @@ def test_the_submit_page_shows_the_push_commands_for_this_user(
     make_user(db, "alice")
     page = html.unescape(browser(registry_client, "alice").get(FORM).text)
     assert "manieval login -u alice --server http://testserver" in page
-    assert "cp -r examples/policy-template my-policy" in page
+    assert "curl -fsSLO http://testserver/downloads/policy-template.tar.gz" in page
     assert "manieval push my-policy:v1 --challenge server-tiny --wait" in page
     assert f"podman login --tls-verify=false -u alice {REGISTRY}" in page
     assert f"podman push --tls-verify=false my-policy:v1 {REGISTRY}/alice/my-policy:v1" in page

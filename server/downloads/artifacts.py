@@ -1,0 +1,155 @@
+"""The files of /downloads, built from the sources this service runs: the participant SDK and
+the slim `manieval` CLI as wheels (the same versions as the service's), and the policy
+template with the SDK inside, ready for `podman build`."""
+
+from __future__ import annotations
+
+import gzip
+import io
+import re
+import tarfile
+import tomllib
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from server.downloads.wheel import WheelSpec, build_wheel
+
+REPO = Path(__file__).resolve().parents[2]
+SDK_PROJECT = REPO / "evaluator" / "sdk"
+CLI_PACKAGE = REPO / "manieval"
+TEMPLATE = REPO / "examples" / "policy-template"
+TEMPLATE_FILE = "policy-template.tar.gz"
+TEMPLATE_DIR = "my-policy"  # what the archive unpacks to
+WHEEL_TYPE = "application/zip"
+EPOCH_SECONDS = 315532800  # 1980-01-01, the wheels' zip time
+
+# The CLI's modules that compose the service (they import the server, the worker or the
+# simulator): left out of the slim CLI, whose `manieval serve`, `demo`, `db`, `admin`,
+# `challenge` and `evaluate` say how to get them (manieval/cli.py).
+SERVER_SIDE = frozenset(
+    {"demo.py", "engines.py", "quiet.py", "serve.py", "service.py", "supervise.py"}
+)
+# The participant commands' third-party packages, pinned as the service's own pyproject pins
+# them (names only here: the versions come from there).
+CLI_REQUIRES = ("typer", "rich", "httpx", "platformdirs")
+# The evaluator's pure-Python modules that a participant command uses (`manieval compare`).
+CLI_EVALUATOR_MODULES = ("__init__.py", "paired.py", "stats.py")
+
+
+class NotServed(LookupError):
+    """A download this service does not have (its sources are not installed beside it)."""
+
+
+@dataclass(frozen=True)
+class Download:
+    filename: str
+    content: bytes
+    media_type: str
+
+
+def _project(pyproject: Path) -> dict[str, Any]:
+    project: dict[str, Any] = tomllib.loads(pyproject.read_text())["project"]
+    return project
+
+
+def _package_files(
+    root: Path, *, prefix: str, skip: frozenset[str] = frozenset()
+) -> dict[str, bytes]:
+    """Every .py and .typed file under `root`, by its path in the wheel."""
+    files = {}
+    for path in sorted(root.rglob("*")):
+        relative = path.relative_to(root)
+        if (
+            path.is_file()
+            and path.suffix in (".py", ".typed")
+            and "__pycache__" not in relative.parts
+        ):
+            if relative.as_posix() not in skip:
+                files[f"{prefix}/{relative.as_posix()}"] = path.read_bytes()
+    return files
+
+
+def _requirement_name(requirement: str) -> str:
+    return re.split(r"[<>=!~\[; ]", requirement, maxsplit=1)[0]
+
+
+def sdk_spec() -> WheelSpec:
+    """The participant SDK (package `manieval_sdk`), as its own pyproject declares it."""
+    if not (SDK_PROJECT / "pyproject.toml").is_file():
+        raise NotServed("the SDK's sources are not installed beside this service")
+    project = _project(SDK_PROJECT / "pyproject.toml")
+    return WheelSpec(
+        name=str(project["name"]),
+        version=str(project["version"]),
+        summary=str(project["description"]),
+        requires=[str(r) for r in project["dependencies"]],
+        requires_python=str(project["requires-python"]),
+        files=_package_files(SDK_PROJECT / "manieval_sdk", prefix="manieval_sdk"),
+    )
+
+
+def cli_spec() -> WheelSpec:
+    """The slim `manieval` command (distribution `manieval-cli`): the participant commands,
+    without the server's, the worker's or the simulator's packages."""
+    if not (CLI_PACKAGE / "cli.py").is_file():
+        raise NotServed("the CLI's sources are not installed beside this service")
+    project = _project(REPO / "pyproject.toml")
+    pinned = {_requirement_name(str(r)): str(r) for r in project["dependencies"]}
+    return WheelSpec(
+        name="manieval-cli",
+        version=str(project["version"]),
+        summary="The ManiEval participant command line (register, login, push, submit, follow)",
+        requires=[pinned[name] for name in CLI_REQUIRES],
+        requires_python=str(project["requires-python"]),
+        files=_package_files(CLI_PACKAGE, prefix="manieval", skip=SERVER_SIDE)
+        | {f"evaluator/{m}": (REPO / "evaluator" / m).read_bytes() for m in CLI_EVALUATOR_MODULES},
+        scripts={"manieval": "manieval.__main__:main"},
+    )
+
+
+def template_archive() -> bytes:
+    """The policy template with the SDK beside its Dockerfile, as `my-policy/`."""
+    if not TEMPLATE.is_dir():
+        raise NotServed("the policy template is not installed beside this service")
+    files = {
+        f"{TEMPLATE_DIR}/{p.relative_to(TEMPLATE).as_posix()}": p.read_bytes()
+        for p in sorted(TEMPLATE.rglob("*"))
+        if p.is_file() and "__pycache__" not in p.parts
+    }
+    files |= _package_files(SDK_PROJECT / "manieval_sdk", prefix=f"{TEMPLATE_DIR}/manieval_sdk")
+    out = io.BytesIO()
+    # Times fixed (the gzip header's too): the same bytes on every build, as the wheels.
+    with (
+        gzip.GzipFile(fileobj=out, mode="wb", mtime=0) as zipped,
+        tarfile.open(fileobj=zipped, mode="w", format=tarfile.PAX_FORMAT) as archive,
+    ):
+        for path, data in sorted(files.items()):
+            member = tarfile.TarInfo(path)
+            member.size, member.mode, member.mtime = len(data), 0o644, EPOCH_SECONDS
+            archive.addfile(member, io.BytesIO(data))
+    return out.getvalue()
+
+
+@cache
+def wheel_files() -> tuple[str, ...]:
+    """The wheels' file names, the SDK's first: what the getting-started page installs."""
+    return tuple(spec().filename for spec in (sdk_spec, cli_spec))
+
+
+@cache
+def downloads() -> dict[str, Download]:
+    """Every download by its file name, built once per process (from the running sources)."""
+    found: dict[str, Download] = {}
+    for spec in (sdk_spec, cli_spec):
+        try:
+            built = spec()
+        except NotServed:
+            continue
+        found[built.filename] = Download(built.filename, build_wheel(built), WHEEL_TYPE)
+    try:
+        found[TEMPLATE_FILE] = Download(TEMPLATE_FILE, template_archive(), "application/gzip")
+    except NotServed:
+        pass
+    return found

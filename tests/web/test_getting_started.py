@@ -1,0 +1,129 @@
+"""The getting-started page: linked from the home, challenge and submit pages; its commands
+filled in for this service; the contract generated from the suite; the downloads it names."""
+
+from __future__ import annotations
+
+import io
+import tarfile
+import zipfile
+from collections.abc import Iterator
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.challenges.contract import condition_effect
+from server.challenges.service import suite_of
+from server.kit.settings import Settings
+from server.models import Challenge
+from testkit.factories import make_user
+from tests.web.helpers import browser
+from tests.web.start_commands import page_commands
+from tests.web.test_web_push_commands import REGISTRY, app_client
+
+START = "/challenges/server-tiny/start"
+
+
+@pytest.fixture
+def registry_client(settings: Settings, sessions: sessionmaker[Session]) -> Iterator[TestClient]:
+    with_registry = settings.model_copy(
+        update={"registry_domain": REGISTRY, "allowed_registries": [REGISTRY]}
+    )
+    with app_client(with_registry, sessions) as c:
+        yield c
+
+
+@pytest.mark.parametrize("page", ["/", "/challenges/server-tiny", "/challenges/server-tiny/submit"])
+def test_the_home_challenge_and_submit_pages_link_to_it(
+    client: TestClient, db: Session, tiny: Challenge, page: str
+) -> None:
+    make_user(db, "alice")
+    assert f'href="{START}"' in browser(client, "alice").get(page).text
+
+
+def test_its_contract_is_the_suites(client: TestClient, tiny: Challenge) -> None:
+    page = client.get(START)
+    assert page.status_code == 200
+    suite = suite_of(tiny)
+    for task in suite.tasks:
+        cells = f"<td>{task.obs_mode}</td><td>{task.control_mode}</td>"
+        assert f'<th scope="row">{task.env_id}</th>{cells}' in page.text
+        assert f'<td class="numeric">{task.max_episode_steps}</td>' in page.text
+    for condition in suite.conditions:
+        assert f"<strong>{condition.name}</strong> ({condition_effect(condition)})" in page.text
+
+
+def test_an_anonymous_reader_is_told_to_register_with_a_placeholder_name(
+    registry_client: TestClient, tiny: Challenge
+) -> None:
+    blocks = {b.step: b for b in page_commands(registry_client.get(START).text)}
+    assert list(blocks) == ["install", "account", "template", "evaluate", "build", "push", "board"]
+    server = " --server http://testserver"
+    assert blocks["account"].lines == [
+        f"manieval register -u NAME --email you@example.org{server}",
+        f"manieval login -u NAME{server}",
+    ]
+    assert blocks["evaluate"].needs == "simulator"
+    assert blocks["push"].lines == ["manieval push my-policy:v1 --challenge server-tiny --wait"]
+
+
+def test_a_signed_in_reader_gets_their_name_and_no_registration(
+    registry_client: TestClient, db: Session, tiny: Challenge
+) -> None:
+    make_user(db, "alice")
+    page = browser(registry_client, "alice").get(START).text
+    account = next(b for b in page_commands(page) if b.step == "account")
+    assert account.lines == ["manieval login -u alice --server http://testserver"]
+
+
+def test_without_a_registry_it_says_where_images_go_instead(
+    client: TestClient, tiny: Challenge
+) -> None:
+    page = client.get(START).text
+    assert "push" not in [b.step for b in page_commands(page)]
+    assert "runs no registry of its own" in page
+
+
+def test_every_download_it_names_is_served(client: TestClient, tiny: Challenge) -> None:
+    page = client.get(START).text
+    urls = [
+        word.removeprefix("http://testserver")
+        for block in page_commands(page)
+        for line in block.lines
+        for word in line.split()
+        if "/downloads/" in word or word.endswith("suite.yaml")
+    ]
+    assert len(urls) == 4, urls  # two wheels, the template, the suite
+    for url in urls:
+        assert client.get(url).status_code == 200, url
+    assert client.get(urls[-1]).text == tiny.suite_yaml
+
+
+def test_the_slim_cli_wheel_leaves_the_server_side_out(client: TestClient) -> None:
+    wheel = zipfile.ZipFile(
+        io.BytesIO(client.get("/downloads/manieval_cli-0.1.0-py3-none-any.whl").content)
+    )
+    names = wheel.namelist()
+    assert "manieval/push.py" in names
+    assert "manieval/serve.py" not in names
+    assert not [n for n in names if n.startswith(("server/", "worker/"))]
+    info = "manieval_cli-0.1.0.dist-info"
+    assert "manieval = manieval.__main__:main" in wheel.read(f"{info}/entry_points.txt").decode()
+    metadata = wheel.read(f"{info}/METADATA").decode()
+    assert "Requires-Dist: typer" in metadata
+    assert "torch" not in metadata
+    assert "fastapi" not in metadata
+
+
+def test_the_template_unpacks_with_the_sdk_beside_its_dockerfile(client: TestClient) -> None:
+    served = client.get("/downloads/policy-template.tar.gz")
+    names = tarfile.open(fileobj=io.BytesIO(served.content)).getnames()
+    assert {
+        "my-policy/Dockerfile",
+        "my-policy/policy.py",
+        "my-policy/manieval_sdk/__init__.py",
+    } <= set(names)
+
+
+def test_an_unknown_download_is_a_404(client: TestClient) -> None:
+    assert client.get("/downloads/nothing.whl").status_code == 404
