@@ -173,6 +173,35 @@ def start(
     return run
 
 
+def a_worker_dies(
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    sid: int,
+    *,
+    watching: bool = True,
+    meanwhile: Callable[[], object] = lambda: None,
+) -> None:
+    """A worker claims attempt 1 of `sid` and creates its Job (and, where `watching`, watches
+    it); `meanwhile` happens; then the worker's process goes, and its watch with it."""
+    handed = api.claim(wsettings.worker_name)
+    assert handed is not None
+    assert (handed.submission_id, handed.attempt) == (sid, 1)
+    killed = threading.Event()
+    first = threading.Thread(
+        target=run_as_job, args=(api, wsettings, handed), kwargs={"stop": killed}
+    )
+    first.start()
+    until(lambda: (NAMESPACE, job_name(sid, 1)) in apiserver.jobs, "the Job")
+    if watching:
+        until(lambda: running_watch(wsettings) is not None, "the worker's watch")
+    meanwhile()
+    killed.set()
+    first.join(timeout=30)
+    assert not first.is_alive()
+    assert running_watch(wsettings) is None
+
+
 def silent_for(sessions: sessionmaker[Session], sid: int, minutes: float) -> None:
     """Let time pass for the server: the attempt's worker last reported `minutes` ago."""
     long_ago = utcnow() - timedelta(minutes=minutes)
@@ -559,18 +588,7 @@ def test_a_lost_watcher_is_replaced_and_the_running_job_kept(
     queued: Submission,
 ) -> None:
     sid, name = queued.id, job_name(queued.id, 1)
-    handed = api.claim(wsettings.worker_name)
-    assert handed is not None
-    assert (handed.submission_id, handed.attempt) == (sid, 1)
-    killed = threading.Event()  # the first watcher's worker dies once the Job exists
-    first = threading.Thread(
-        target=run_as_job, args=(api, wsettings, handed), kwargs={"stop": killed}
-    )
-    first.start()
-    until(lambda: (NAMESPACE, name) in apiserver.jobs, "the Job")
-    killed.set()
-    first.join(timeout=30)
-    assert not first.is_alive()
+    a_worker_dies(api, wsettings, apiserver, sid, watching=False)  # once the Job exists
     apiserver.run(NAMESPACE, name)
     silent_for(committed_sessions, sid, minutes=4)  # past the heartbeat timeout
     assert [(r.submission_id, r.attempt) for r in api.silent()] == [(sid, 1)]
@@ -654,20 +672,7 @@ def test_a_restarted_worker_that_missed_the_eviction_reads_the_jobs_failure_as_t
     disruption: str,
 ) -> None:
     sid, name = queued.id, job_name(queued.id, 1)
-    handed = api.claim(wsettings.worker_name)
-    assert handed is not None
-    killed = threading.Event()
-    first = threading.Thread(
-        target=run_as_job, args=(api, wsettings, handed), kwargs={"stop": killed}
-    )
-    first.start()
-    until(lambda: (NAMESPACE, name) in apiserver.jobs, "the Job")
-    until(lambda: running_watch(wsettings) is not None, "the worker's watch")
-    apiserver.run(NAMESPACE, name)
-    killed.set()  # the worker process goes, and its watch with it
-    first.join(timeout=30)
-    assert not first.is_alive()
-    assert running_watch(wsettings) is None
+    a_worker_dies(api, wsettings, apiserver, sid, meanwhile=lambda: apiserver.run(NAMESPACE, name))
     apiserver.evict(NAMESPACE, name, reason=disruption)  # a drain or a preemption meanwhile
     assert apiserver.pods_of(NAMESPACE, name) == []  # the eviction is lost: only the Job is left
 
@@ -1256,19 +1261,7 @@ def test_a_restarted_worker_adopts_the_running_job_and_follows_it_to_its_end(
     queued: Submission,
 ) -> None:
     sid, name = queued.id, job_name(queued.id, 1)
-    handed = api.claim(wsettings.worker_name)
-    assert handed is not None
-    killed = threading.Event()
-    first = threading.Thread(
-        target=run_as_job, args=(api, wsettings, handed), kwargs={"stop": killed}
-    )
-    first.start()
-    until(lambda: (NAMESPACE, name) in apiserver.jobs, "the Job")
-    until(lambda: running_watch(wsettings) is not None, "the worker's watch")
-    killed.set()  # the worker process goes, and its watch with it
-    first.join(timeout=30)
-    assert not first.is_alive()
-    assert running_watch(wsettings) is None
+    a_worker_dies(api, wsettings, apiserver, sid)
     apiserver.run(NAMESPACE, name)
     apiserver.write_log(NAMESPACE, name, "evaluator", "manieval: run 0 episode 0: success\n")
     lists = apiserver.counts()["list jobs"]
