@@ -6,6 +6,7 @@ applies them with. Without kubectl the tests that need a rendering fail in CI an
 
 from __future__ import annotations
 
+import copy
 import functools
 import os
 import shutil
@@ -80,7 +81,7 @@ def _render(directory: Path) -> tuple[Json, ...]:
 def render(overlay: str) -> list[Json]:
     """The objects `kubectl kustomize k8s/overlays/OVERLAY` produces (fresh copies)."""
     require_kubectl()
-    return yaml.safe_load(yaml.safe_dump(list(_render(K8S / "overlays" / overlay))))
+    return copy.deepcopy(list(_render(K8S / "overlays" / overlay)))
 
 
 def find(objects: list[Json], kind: str, name: str | None = None) -> list[Json]:

@@ -194,7 +194,12 @@ def _concurrency(worker: Json) -> int:
     return int(argv[argv.index("--concurrency") + 1])
 
 
-CLUSTER_SCOPED = {"Namespace", "RuntimeClass"}
+CLUSTER_SCOPED = {
+    "Namespace",
+    "RuntimeClass",
+    "ValidatingAdmissionPolicy",
+    "ValidatingAdmissionPolicyBinding",
+}
 EVALUATION_NAMESPACE_KINDS = {"NetworkPolicy", "ResourceQuota", "LimitRange", "Role", "RoleBinding"}
 
 
