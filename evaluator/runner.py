@@ -16,6 +16,7 @@ from evaluator.channel import PolicyChannel, RemoteChannel
 from evaluator.conditions import ConditionRuntime
 from evaluator.endpoint import PolicyEndpoint, PolicyFailure, PolicyRaised, Stopped
 from evaluator.episode import run_episode
+from evaluator.limits import with_detail
 from evaluator.observation import ObservationKeys
 from evaluator.packages import import_packages
 from evaluator.plan import EvaluationPlan, TaskRun
@@ -329,7 +330,7 @@ def run_shard(
         run_index, index, abort = outcome.abort
         kind = limit_reached(process) or abort.kind  # a sandbox stopped it at a resource limit
         ended = process.exit_detail() or (None if code in (None, 0) else f"exit code {code}")
-        reason = abort.reason if ended is None else f"{abort.reason} ({ended})"
+        reason = abort.reason if ended is None else with_detail(abort.reason, ended)
         tail = process.log_tail()
         outcome.abort = (
             run_index,

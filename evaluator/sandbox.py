@@ -23,8 +23,15 @@ import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Literal
+from typing import IO
 
+from evaluator.limits import (
+    SANDBOX,
+    Breach,
+    memory_breach,
+    process_breach,
+    scratch_breach,
+)
 from evaluator.sandbox_command import (
     GROUP,
     MIB,
@@ -41,8 +48,6 @@ from evaluator.sandbox_command import (
 WATCH_INTERVAL_S = 0.2
 SYSTEM_TREES = ("/usr", "/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32")
 RUNTIME_MODULES = ("manieval_sdk", "numpy", "msgpack")
-
-LimitKind = Literal["memory_limit", "process_limit", "file_size_limit"]
 
 
 def unavailable() -> str | None:
@@ -117,26 +122,14 @@ class Usage:
     full_scratch: str | None  # a scratch directory with no space left
 
 
-@dataclass(frozen=True)
-class Breach:
-    """A limit the sandbox reached, in the words its result gives."""
-
-    kind: LimitKind
-    detail: str
-
-
 def breached(usage: Usage, limits: SandboxLimits) -> Breach | None:
     """Which limit `usage` has reached, if any."""
-    stopped = "the sandbox stopped it"
     if usage.tasks >= limits.processes:
-        return Breach("process_limit", f"{stopped} at its limit of {limits.processes} processes")
+        return process_breach(SANDBOX, limits.processes)
     if usage.memory_bytes >= limits.memory_mib * MIB:
-        return Breach("memory_limit", f"{stopped} at its memory limit of {limits.memory_mib} MiB")
+        return memory_breach(SANDBOX, limits.memory_mib)
     if usage.full_scratch is not None:
-        return Breach(
-            "file_size_limit",
-            f"{stopped} with its {usage.full_scratch} full ({limits.scratch_mib} MiB)",
-        )
+        return scratch_breach(SANDBOX, usage.full_scratch, limits.scratch_mib)
     return None
 
 

@@ -20,13 +20,14 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from docker.client import DockerClient
 from docker.errors import DockerException, ImageNotFound, NotFound
 from docker.models.containers import Container
 from docker.types import DeviceRequest, LogConfig, Mount, Ulimit
 
+from evaluator.limits import ENGINE, Breach, LimitKind, memory_breach, process_breach
 from evaluator.sources import LOG_TAIL_BYTES, OutputEcho, OutputSink
 from internal_api.schemas import IMAGE_DIGEST, PINNED_IMAGE
 
@@ -192,16 +193,16 @@ def share_socket(socket_dir: Path, socket_path: Path, *, gid: int = POLICY_UID) 
     os.chmod(socket_path, 0o660)
 
 
+def memory_killed(*, exit_code: int, oom_killed: bool) -> bool:
+    """Whether a container that ended on its own was killed at its memory limit."""
+    # Podman 4 on cgroup v1 never sets OOMKilled; nothing but the kernel kills PID 1 here.
+    return oom_killed or exit_code == SIGKILL_EXIT
+
+
 def exit_detail(*, exit_code: int, oom_killed: bool, memory_mib: int) -> str | None:
     """How a container that ended on its own ended, in words for the submission's owner."""
-    if oom_killed:
-        return f"exit code {exit_code}: it exceeded its memory limit of {memory_mib} MiB"
-    if exit_code == SIGKILL_EXIT:
-        # Podman 4 on cgroup v1 never sets OOMKilled; nothing but the kernel kills PID 1 here.
-        return (
-            f"exit code {exit_code}: killed, most likely for exceeding its memory limit of "
-            f"{memory_mib} MiB"
-        )
+    if memory_killed(exit_code=exit_code, oom_killed=oom_killed):
+        return memory_breach(ENGINE, memory_mib).detail
     return None if exit_code == 0 else f"exit code {exit_code}"
 
 
@@ -319,9 +320,7 @@ class ContainerImage:
             _remove(container)
             client.close()
             raise ExecutorError(f"cannot start {config['name']}: {exc}") from exc
-        return ContainerProcess(
-            client, container, memory_mib=self.limits.memory_mib, engine_url=self.engine_url
-        )
+        return ContainerProcess(client, container, limits=self.limits, engine_url=self.engine_url)
 
 
 class ContainerProcess:
@@ -332,7 +331,7 @@ class ContainerProcess:
         client: DockerClient,
         container: Container,
         *,
-        memory_mib: int,
+        limits: ContainerLimits,
         engine_url: str = DEFAULT_ENGINE_URL,
     ) -> None:
         self._client = client
@@ -340,11 +339,12 @@ class ContainerProcess:
         self._engine_url = engine_url
         self._echo: threading.Thread | None = None
         self.name = str(container.name)
-        self._memory_mib = memory_mib
+        self._limits = limits
         self._lock = threading.Lock()
         self._polled = -float("inf")
         self._state: dict[str, Any] | None = None  # the engine's State once it stopped running
         self._detail: str | None = None
+        self._breach: Breach | None = None
         self._tail: str | None = None
         self._stopped = False
 
@@ -359,8 +359,15 @@ class ContainerProcess:
         return None if code is None else int(code)
 
     def exit_detail(self) -> str | None:
-        """After stop(): how it ended if it ended on its own (memory limit, exit code)."""
-        return self._detail
+        """After stop(): how it ended if it ended on its own (memory limit, exit code), or the
+        limit it was held at."""
+        return self._breach.detail if self._breach is not None else self._detail
+
+    def limit_reached(self) -> LimitKind | None:
+        """After stop(): the limit the engine held it at (`ConfinedProcess`): killed at its
+        memory limit, or running as many processes as its pids limit lets it (a fork bomb the
+        engine refuses more, which then answers nothing)."""
+        return self._breach.kind if self._breach is not None else None
 
     def log_tail(self) -> str:
         """The last bytes of the policy's stdout and stderr (kept after the container is gone)."""
@@ -400,11 +407,14 @@ class ContainerProcess:
             time.sleep(0.05)
             state = self._ended(max_age=0)
         if state is not None:
+            code, oom_killed = int(state.get("ExitCode", 0)), bool(state.get("OOMKilled"))
             self._detail = exit_detail(
-                exit_code=int(state.get("ExitCode", 0)),
-                oom_killed=bool(state.get("OOMKilled")),
-                memory_mib=self._memory_mib,
+                exit_code=code, oom_killed=oom_killed, memory_mib=self._limits.memory_mib
             )
+            if memory_killed(exit_code=code, oom_killed=oom_killed):
+                self._breach = memory_breach(ENGINE, self._limits.memory_mib)
+        elif self._processes() >= self._limits.pids:
+            self._breach = process_breach(ENGINE, self._limits.pids)
         self._tail = self._read_logs()
         _remove(self._container)
         if self._echo is not None:
@@ -413,6 +423,15 @@ class ContainerProcess:
             if self._state is None:
                 self._state = {}  # killed by us: no exit of the policy's own
         self._client.close()
+
+    def _processes(self) -> int:
+        """How many processes the running container holds now (0 if it cannot be told)."""
+        try:
+            stats = cast(dict[str, Any], self._container.stats(stream=False))
+        except DockerException as exc:
+            log.warning("cannot read %s's process count: %s", self.name, exc)
+            return 0
+        return int((stats.get("pids_stats") or {}).get("current") or 0)
 
     def _ended(self, *, max_age: float) -> dict[str, Any] | None:
         # Inspecting, not the engine's blocking wait: Podman 4 busy-polls for every waiter.

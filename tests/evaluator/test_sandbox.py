@@ -20,7 +20,8 @@ from evaluator import sandbox, sources
 from evaluator.endpoint import PolicyEndpoint
 from evaluator.evaluation import evaluate
 from evaluator.results import EvaluationResult
-from evaluator.sandbox import Breach, Usage, breached, minimal_cover
+from evaluator.limits import Breach
+from evaluator.sandbox import Usage, breached, minimal_cover
 from evaluator.sandbox_command import (
     MIB,
     SANDBOX_UID,

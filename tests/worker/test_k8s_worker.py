@@ -362,9 +362,14 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
     apiserver.succeed(NAMESPACE, name, [printed(document)], policy_logs=["Killed\n"])
     assert run.wait() == State.FAILED
     submission = run.submission(sid)
-    assert submission.reason.startswith("the policy disconnected; ")
-    assert "OOMKilled" in submission.reason
+    assert submission.reason == (  # as the sandbox and the container engine name it
+        "the policy disconnected (Kubernetes stopped it at its memory limit of 2048 MiB)"
+    )
     assert submission.log_tail == "Killed"
+    with committed_sessions() as db:
+        stored = db.get(Submission, sid)
+        assert stored is not None and stored.result is not None
+        assert stored.result["abort"]["kind"] == "memory_limit"
 
 
 @pytest.mark.parametrize(

@@ -15,17 +15,20 @@ import logging
 from kubernetes.client import V1Pod
 
 from evaluator.job import JobOutputError, result_from_logs
+from evaluator.limits import KUBERNETES, charged, memory_breach
 from evaluator.plan import EvaluationPlan
 from evaluator.sources import LOG_TAIL_BYTES
 from internal_api.schemas import ErrorCause, FinalReport, State
 from worker.kubernetes.client import KubernetesError, KubernetesExecutor, LogLost
 from worker.kubernetes.manifest import POLICY, JobSpec
+from worker.kubernetes.quota import parse_quantity
 from worker.kubernetes.status import STOPPED, JobStatus, pod_view
 from worker.outcome import conclusion, ended
 
 log = logging.getLogger(__name__)
 
 POLICY_LOG_LINES = 400
+MIB = 1 << 20
 CLUSTER = ErrorCause.CLUSTER
 
 
@@ -58,19 +61,20 @@ def _result(executor: KubernetesExecutor, spec: JobSpec, plan: EvaluationPlan) -
         return ended(State.ERROR, f"the evaluation's log was lost: {exc}", cause=CLUSTER)
     except (KubernetesError, JobOutputError) as exc:
         return ended(State.ERROR, f"the evaluation's result could not be read: {exc}")
-    policy_ended, policy_log = _policy_side(executor, spec, pods)
-    return conclusion(result, log_tail=policy_log, detail=policy_ended)
-
-
-def _policy_side(
-    executor: KubernetesExecutor, spec: JobSpec, pods: list[V1Pod]
-) -> tuple[str | None, str]:
-    """How the policy container ended and its log tail: extras that never cost a result."""
     view = pod_view(pods)
+    detail = view.policy_ended
+    if view.policy_memory_killed:  # named as the sandbox and the container engine name it
+        breach = memory_breach(KUBERNETES, int(parse_quantity(spec.policy_resources.memory)) // MIB)
+        result, detail = charged(result, breach), breach.detail
+    return conclusion(result, log_tail=_policy_log(executor, spec, pods), detail=detail)
+
+
+def _policy_log(executor: KubernetesExecutor, spec: JobSpec, pods: list[V1Pod]) -> str:
+    """The policy container's log tail: an extra that never costs a result."""
     try:
         logs = executor.logs(pods, spec.shards, container=POLICY, tail_lines=POLICY_LOG_LINES)
     except KubernetesError as exc:
         log.warning("Job %s: the policy's side could not be read: %s", spec.name, exc)
-        return None, ""
+        return ""
     text = "\n".join(line.rstrip("\n") for line in logs if line)
-    return view.policy_ended, text[-LOG_TAIL_BYTES:]
+    return text[-LOG_TAIL_BYTES:]

@@ -88,6 +88,8 @@ class PodView:
     """A container whose image pull failed: the kubelet tries again, with back-off."""
     policy_ended: str | None = None
     """How the policy container last ended, when it did not exit cleanly (OOMKilled, a code)."""
+    policy_memory_killed: bool = False
+    """Whether that end was the kubelet killing it at its memory limit (`OOMKilled`)."""
     evaluating: bool = False
     """Whether an evaluator container has started in some pod."""
     started: int = 0
@@ -269,7 +271,8 @@ def _look(view: PodView, container: Any, evaluator_end: datetime | None) -> PodV
             current = None
         for ended in (last.terminated if last is not None else None, current):
             if ended is not None and (ended.reason == "OOMKilled" or ended.exit_code):
-                view = replace(view, policy_ended=_ending(ended))
+                killed = ended.reason == "OOMKilled"
+                view = replace(view, policy_ended=_ending(ended), policy_memory_killed=killed)
                 break
     return view
 
