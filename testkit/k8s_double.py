@@ -341,11 +341,13 @@ class ApiServerDouble:
         reason: str = "PodFailurePolicy",
         message: str = "Container evaluator for pod x failed with exit code 1",
         logs: Sequence[str] = (),
+        evaluator_oom: bool = False,
     ) -> None:
-        """The pods failed; the Job fails with `reason`."""
+        """The pods failed (with `evaluator_oom`, the kubelet killed the evaluator at its memory
+        limit: exit code 137, reason OOMKilled); the Job fails with `reason`."""
         with self.lock:
             for pod in self._pods_of(namespace, name):
-                self._evaluator_exits(pod, 1)
+                self._evaluator_exits(pod, 137 if evaluator_oom else 1, oom=evaluator_oom)
                 pod["status"]["phase"] = "Failed"
                 index = int(pod["metadata"]["labels"].get(INDEX_LABEL, "0"))
                 if index < len(logs):
@@ -1226,7 +1228,7 @@ class ApiServerDouble:
             "containerStatuses": [running(c) for c in spec["containers"]],
         }
 
-    def _evaluator_exits(self, pod: Json, code: int) -> None:
+    def _evaluator_exits(self, pod: Json, code: int, *, oom: bool = False) -> None:
         """The evaluator exits with `code`; the kubelet then stops the policy sidecar (sidecars
         end after the main containers, KEP-753: pkg/kubelet/kuberuntime's termination order).
         Its SIGTERM does nothing to a `python3` running as PID 1 without a handler, so the
@@ -1239,7 +1241,7 @@ class ApiServerDouble:
                 status["state"] = {
                     "terminated": {
                         "exitCode": code,
-                        "reason": "Completed" if code == 0 else "Error",
+                        "reason": "OOMKilled" if oom else "Completed" if code == 0 else "Error",
                         "finishedAt": now,
                     }
                 }

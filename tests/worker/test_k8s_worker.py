@@ -368,7 +368,8 @@ def test_a_policy_abort_fails_the_submission_with_the_pods_reason_and_log(
     assert submission.log_tail == "Killed"
     with committed_sessions() as db:
         stored = db.get(Submission, sid)
-        assert stored is not None and stored.result is not None
+        assert stored is not None
+        assert stored.result is not None
         assert stored.result["abort"]["kind"] == "memory_limit"
 
 
@@ -429,6 +430,25 @@ def test_every_way_a_job_ends_gives_a_final_state_with_a_reason(
     arrange(apiserver, name)
     assert run.wait() == state
     assert attempt_end(committed_sessions, queued.id).reason.startswith(reason)
+
+
+def test_an_evaluator_out_of_memory_is_the_services_sizing_never_the_policys(
+    committed_sessions: sessionmaker[Session],
+    api: ServerAPI,
+    wsettings: WorkerSettings,
+    apiserver: ApiServerDouble,
+    queued: Submission,
+) -> None:
+    name = job_name(queued.id, 1)
+    run = start(api, wsettings, committed_sessions, apiserver, queued.id)
+    apiserver.run(NAMESPACE, name)
+    message = "Container evaluator for pod x failed with exit code 137"
+    apiserver.fail(NAMESPACE, name, message=message, evaluator_oom=True)
+    reason = assert_cluster_error(committed_sessions, queued.id, run.wait())
+    assert reason.startswith(
+        "the cluster stopped the evaluation: the evaluator ran out of memory (its limit of "
+        "4096 MiB: raise MANIEVAL_EVALUATOR_MEMORY)"
+    )
 
 
 def test_cancel_during_a_run_deletes_the_job_and_its_pods(

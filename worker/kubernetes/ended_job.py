@@ -41,7 +41,8 @@ def final_report(
         return _result(executor, spec, plan)
     if status.phase == "missing":
         return ended(State.ERROR, f"the evaluation's Job {spec.name} disappeared", cause=CLUSTER)
-    disrupted = executor.pods(spec.submission_id, spec.attempt).disrupted  # evicted, refused...
+    view = executor.pods(spec.submission_id, spec.attempt)
+    disrupted = view.disrupted  # evicted, refused...
     if disrupted is not None:  # ...the cluster's doing, not the policy's
         then = " and it then ran out of time" if status.phase == "deadline_exceeded" else ""
         reason = f"the cluster stopped the evaluation{then}: {disrupted}"
@@ -49,6 +50,13 @@ def final_report(
     if status.phase == "deadline_exceeded":  # it covers the whole plan (`active_deadline_for`):
         # the cluster ran it too slowly, the policy's budget being the evaluator's to enforce
         reason = f"{STOPPED}its Job ran past its deadline ({status.reason})"
+        return ended(State.ERROR, reason, cause=CLUSTER)
+    if view.evaluator_memory_killed:  # the service's sizing, never the policy's
+        limit = int(parse_quantity(spec.evaluator_resources.memory)) // MIB
+        reason = (
+            f"{STOPPED}the evaluator ran out of memory (its limit of {limit} MiB: raise "
+            "MANIEVAL_EVALUATOR_MEMORY)"
+        )
         return ended(State.ERROR, reason, cause=CLUSTER)
     return ended(State.ERROR, f"the evaluator failed ({status.reason})")
 

@@ -90,6 +90,8 @@ class PodView:
     """How the policy container last ended, when it did not exit cleanly (OOMKilled, a code)."""
     policy_memory_killed: bool = False
     """Whether that end was the kubelet killing it at its memory limit (`OOMKilled`)."""
+    evaluator_memory_killed: bool = False
+    """Whether an evaluator container was killed at its memory limit: the service's sizing."""
     evaluating: bool = False
     """Whether an evaluator container has started in some pod."""
     started: int = 0
@@ -261,6 +263,9 @@ def _look(view: PodView, container: Any, evaluator_end: datetime | None) -> PodV
             view = replace(view, pulling=PullFailure(container.name, detail))
     if container.name == EVALUATOR and state is not None and (state.running or state.terminated):
         view = replace(view, evaluating=True)
+        for ended in (state.terminated, last.terminated if last is not None else None):
+            if ended is not None and ended.reason == "OOMKilled":
+                view = replace(view, evaluator_memory_killed=True)
     if container.name == POLICY and view.policy_ended is None:
         # Its last state first: a crash or OOM kill the sidecar was restarted after. An end at
         # or after the evaluator's is the kubelet stopping the sidecar (SIGTERM, then a kill
