@@ -22,10 +22,11 @@ from server.kit.deps import DBDep
 from server.kit.pages import render, templates
 from server.leaderboard.columns import board_columns
 from server.leaderboard.deps import services
+from server.leaderboard.late import post_deadline_board
 from server.leaderboard.service import Board, Row, suite_columns
 from server.leaderboard.snapshot import Snapshot
 from server.leaderboard.visibility import as_seen_by
-from server.models import User
+from server.models import User, utcnow
 
 router = APIRouter(include_in_schema=False)
 
@@ -165,4 +166,20 @@ def leaderboard_page(
         phase=shown,
         board_main=Markup(main),
         may_reevaluate=shown.pending_board_version is None and board.total > 0,
+        phase_open=shown.is_open(utcnow()),
     )
+
+
+@router.get("/challenges/{slug}/post-deadline")
+def post_deadline_page(
+    slug: str,
+    request: Request,
+    who: ViewerDep,
+    db: DBDep,
+    phase: Annotated[str, Query(max_length=32)] = "test",
+) -> Response:
+    """The phase's post-deadline board: what was submitted after it closed, ranked apart."""
+    challenge = get_challenge(db, slug=slug)
+    shown = shown_phase(challenge, name=phase)
+    rows = post_deadline_board(db, slug=challenge.slug, phase=shown.name, viewer=who.user)
+    return render(request, who, "post_deadline.html", challenge=challenge, phase=shown, rows=rows)

@@ -17,6 +17,18 @@ from server.submissions.changes import changed
 from server.submissions.service import owned_or_admin
 
 
+def markable(submission: Submission, *, now: datetime) -> bool:
+    """Whether the page offers a final mark on it (`mark_final` checks again, under locks):
+    its phase gives a final choice and is open, and it is a participant's own, on time."""
+    phase = submission.phase
+    return (
+        phase.final_choice
+        and phase.is_open(now)
+        and not submission.post_deadline
+        and submission.reevaluation_of is None
+    )
+
+
 def mark_final(
     db: DB, *, user: User, submission: Submission, final: bool, now: datetime | None = None
 ) -> None:
