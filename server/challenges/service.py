@@ -131,11 +131,13 @@ def close_phase(db: DB, *, slug: str, phase: str, now: datetime | None = None) -
 
 def lock_phase(db: DB, *, phase_id: int, write: bool = False) -> Phase:
     """The phase's row, read again under a lock: shared for a submit (submits do not wait on
-    each other), exclusive for a change of its dates or rules."""
+    each other), else the lock an update of the row takes (`FOR NO KEY UPDATE`: a change of
+    its dates; a final mark, whose board refresh updates the row, so that two marks never
+    both hold it shared and then wait on each other to update it)."""
     locked = db.scalar(
         select(Phase)
         .where(Phase.id == phase_id)
-        .with_for_update(read=not write)
+        .with_for_update(read=not write, key_share=write)
         .execution_options(populate_existing=True)
     )
     if locked is None:

@@ -47,7 +47,8 @@ def mark_final(
     if challenge is None:
         raise NotFound(f"no submission {submission.id}")  # its challenge went meanwhile
     _lock_owner(db, submission=submission, challenge=challenge)
-    phase = lock_phase(db, phase_id=submission.phase_id)  # a close is before or after this
+    # A close is wholly before or after this; the refresh below updates the row anyway.
+    phase = lock_phase(db, phase_id=submission.phase_id, write=True)
     where = f"phase {phase.name!r} of {challenge.slug!r}"
     if not phase.final_choice:
         raise Conflict(f"{where} takes no final choice: its board shows the {phase.counts} one")

@@ -222,6 +222,43 @@ def test_marks_made_at_once_leave_one_final_choice(
 
 
 @pytest.mark.parametrize("engine", ["postgres"], indirect=True)
+def test_participants_marking_at_once_each_keep_their_own_choice(
+    engine: Engine, committed_sessions: sessionmaker[Session], tmp_path: Path
+) -> None:
+    with committed_sessions() as db:
+        challenge = _challenge(db, tmp_path)
+        users = [make_user(db, f"user{i}") for i in range(4)]
+        made = {u.id: [_done(db, u, challenge, [True, False]).id for _ in range(2)] for u in users}
+    barrier = threading.Barrier(len(made))
+    errors: list[BaseException] = []
+
+    def mark(user_id: int, submission_id: int) -> None:
+        try:
+            with committed_sessions() as db:
+                user = db.get(User, user_id)
+                submission = db.get(Submission, submission_id)
+                assert user is not None
+                assert submission is not None
+                barrier.wait()
+                mark_final(db, user=user, submission=submission, final=True)
+                db.commit()
+        except BaseException as exc:  # reported below, in the test's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=mark, args=(u, ids[0])) for u, ids in made.items()]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert errors == []  # no deadlock between marks of different participants
+    with committed_sessions() as db:
+        finals = set(db.scalars(select(Submission.id).where(Submission.final_for.is_not(None))))
+        assert finals == {ids[0] for ids in made.values()}
+        rows = set(db.scalars(select(LeaderboardEntry.submission_id)))
+        assert rows == finals
+
+
+@pytest.mark.parametrize("engine", ["postgres"], indirect=True)
 def test_no_official_submission_lands_after_the_close(
     engine: Engine, committed_sessions: sessionmaker[Session], tmp_path: Path
 ) -> None:
