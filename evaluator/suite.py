@@ -67,6 +67,23 @@ class Phase(_Strict):
     """The family-wise level at which the phase's board separates neighbours into tie groups
     (McNemar's exact test, Holm's correction: docs/metrics.md, "Paired significance"). How
     results are read, not what is evaluated: not in the hash."""
+    counts: Literal["best", "last"] = "best"
+    """Which of a participant's submissions stands on the board: the best-scoring or the
+    latest (docs/server.md, Challenge rules). The rules below, like the level, are how the
+    phase is run, not what is evaluated: not in the hash."""
+    final_choice: bool = False
+    """A participant may mark one submission as final: it stands on the board, whatever
+    `counts` says, once it succeeded."""
+    after_close: Literal["refuse", "post_deadline"] = "refuse"
+    """What a submission after the phase closes gets: refused, or evaluated for the phase's
+    post-deadline board, which never mixes with the official one."""
+    board: Literal["public", "hidden"] = "public"
+    """A hidden board shows each participant only their own rows until an organizer publishes
+    it (`manieval challenge publish`); organizers see it all."""
+
+
+RULES = ("significance_level", "counts", "final_choice", "after_close", "board")
+"""A phase's settings that say how it is run and read, not what is evaluated."""
 
 
 class Nominal(_Strict):
@@ -301,7 +318,8 @@ class Suite(_Strict):
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
         content = self.model_dump(mode="json", exclude={"shards", "title", "policy", *RECORDING})
         for phase in content["phases"].values():
-            del phase["significance_level"]
+            for name in RULES:
+                del phase[name]
         for name in _HASHED_WHEN_SET:  # suites that do not use a newer setting keep their hash
             if getattr(self, name) == type(self).model_fields[name].default:
                 del content[name]

@@ -140,10 +140,12 @@ for command in (
     participant.logs,
     participant.trajectories,
     participant.cancel,
+    participant.final,
     participant.leaderboard,
     compare.compare,
 ):
     app.command(rich_help_panel=PARTICIPATE)(command)
+app.command("post-deadline", rich_help_panel=PARTICIPATE)(participant.post_deadline)
 app.add_typer(teams.app, name="team", rich_help_panel=PARTICIPATE)
 
 app.command("evaluate", rich_help_panel=OPERATE)(evaluate)

@@ -361,6 +361,18 @@ class Client:
         result: JSON = self.call("POST", f"/submissions/{submission_id}/cancel")
         return result
 
+    def mark_final(self, submission_id: int, *, final: bool = True) -> JSON:
+        """Make it my final choice in its phase (or, `final` False, take the mark off)."""
+        method = "PUT" if final else "DELETE"
+        result: JSON = self.call(method, f"/submissions/{submission_id}/final")
+        return result
+
+    def post_deadline(self, slug: str, *, phase: str) -> JSON:
+        """The phase's post-deadline board: what was submitted after it closed."""
+        path = f"/challenges/{_segment(slug)}/post-deadline"
+        result: JSON = self.call("GET", path, params={"phase": phase})
+        return result
+
     # Teams ------------------------------------------------------------------------------------
 
     def my_team(self) -> JSON:

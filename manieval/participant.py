@@ -82,7 +82,8 @@ def leaderboard(
         raise typer.BadParameter("choose one of --json, --csv and --format", param_hint="--format")
     shown = chosen[0] if chosen else BoardFormat.TABLE
     asked = "json" if shown is BoardFormat.TABLE else shown.value
-    with handled(), connect(server, login="none") as client:
+    # Your token, where one is saved: a hidden board shows you your own rows.
+    with handled(), connect(server, login="optional") as client:
         response = client.leaderboard(
             challenge, phase=phase, page=page, per_page=per_page, format=asked
         )
@@ -267,3 +268,39 @@ def cancel(submission_id: SubmissionId, server: ServerOption = None) -> None:
     with handled(), connect(server, login="required") as client:
         s = client.cancel(submission_id)
     render.stderr().print(Text(f"submission {s['id']}: ") + render.state(s["state"]))
+
+
+def final(
+    submission_id: SubmissionId,
+    clear: Annotated[
+        bool, typer.Option("--clear", help="Take the mark off: the phase's rule picks again.")
+    ] = False,
+    server: ServerOption = None,
+) -> None:
+    """Mark a submission as your final choice in its phase (where the phase's rules give one):
+    it stands on the board once it succeeded; the mark moves from the one that had it."""
+    with handled(), connect(server, login="required") as client:
+        s = client.mark_final(submission_id, final=not clear)
+    what = "is your final choice" if s["final"] else "is no longer your final choice"
+    render.stderr().print(f"submission {s['id']} {what} in phase {s['phase']} of {s['challenge']}")
+
+
+def post_deadline(
+    challenge: Annotated[str, typer.Argument(help="The challenge's name.")],
+    phase: Annotated[str, typer.Option(help="The phase.")] = "test",
+    server: ServerOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Show a phase's post-deadline board: submissions made after it closed, ranked apart from
+    the official board."""
+    with handled(), connect(server, login="optional") as client:
+        board = client.post_deadline(challenge, phase=phase)
+    if as_json:
+        print_json(board)
+        return
+    out = render.stdout()
+    if not board["items"]:
+        render.stderr().print(f"no post-deadline rows in phase {phase} of {challenge}")
+    for row in board["items"]:
+        rank = "-" if row["rank"] is None else str(row["rank"])
+        out.print(f"{rank:>4}  {row['username']:<24} #{row['submission_id']:<8} {row['score']:.3f}")

@@ -8,7 +8,7 @@ from __future__ import annotations
 import getpass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from pydantic import ValidationError
@@ -18,6 +18,9 @@ from sqlalchemy.orm import Session, sessionmaker
 from evaluator.suite import Suite, SuiteError
 from server.kit.errors import AppError
 from server.kit.settings import Settings
+
+if TYPE_CHECKING:
+    from server.models import Phase
 
 console = Console(stderr=True, soft_wrap=True)
 
@@ -163,7 +166,7 @@ def challenge_load(
                 seed_secret=s.secret("seed_secret"),
             )
             slug = challenge.slug
-            phases = [(p.name, p.seed_commitment) for p in challenge.phases]
+            phases = [(p.name, p.seed_commitment, _rules_line(p)) for p in challenge.phases]
             refusal = policy_refusal(challenge, policy_gpus=s.policy_gpus)
             loaded = suite_of(challenge)
     except (SuiteError, AppError) as exc:
@@ -171,8 +174,8 @@ def challenge_load(
         raise typer.Exit(1) from None
     console.print(f"challenge {slug} loaded{' (teams)' if teams else ''}")
     _print_packages(loaded)
-    for name, commitment in phases:
-        console.print(f"  phase {name}: seed commitment {commitment}")
+    for name, commitment, rules in phases:
+        console.print(f"  phase {name}: seed commitment {commitment}; {rules}")
     if refusal is not None:
         # Loaded all the same: the GPUs may come later; until then submissions are refused.
         console.print(
@@ -181,6 +184,20 @@ def challenge_load(
             markup=True,
             highlight=False,
         )
+
+
+def _rules_line(phase: Phase) -> str:
+    """A phase's rules in words (docs/server.md, Challenge rules)."""
+    words = [f"{phase.counts} counts"]
+    if phase.final_choice:
+        words.append("final choice")
+    words.append(
+        "late ones to a post-deadline board"
+        if phase.after_close == "post_deadline"
+        else "late ones refused"
+    )
+    words.append("board hidden until published" if phase.board == "hidden" else "board public")
+    return ", ".join(words)
 
 
 def _print_packages(suite: Suite) -> None:
@@ -236,6 +253,45 @@ def challenge_teams(
         raise typer.Exit(1) from None
     counted = "per team" if mode == "on" else "per user"
     console.print(f"challenge {slug}: quotas and leaderboard rows count {counted}")
+
+
+@challenge_app.command("close")
+def challenge_close(
+    slug: Annotated[str, typer.Argument(help="The challenge.")],
+    phase: Annotated[str, typer.Argument(help="The phase to close now.")],
+) -> None:
+    """Close a phase now: later submissions go by its `after_close` rule (refused, or to its
+    post-deadline board), and final choices stand."""
+    from server.challenges.service import close_phase
+
+    sessions = migrated_sessions(settings())
+    try:
+        with sessions.begin() as db:
+            closed = close_phase(db, slug=slug, phase=phase)
+            rule = closed.after_close
+    except AppError as exc:
+        console.print(f"[red]error:[/] {exc.message}")
+        raise typer.Exit(1) from None
+    late = "go to its post-deadline board" if rule == "post_deadline" else "are refused"
+    console.print(f"challenge {slug}: phase {phase} closed; later submissions {late}")
+
+
+@challenge_app.command("publish")
+def challenge_publish(
+    slug: Annotated[str, typer.Argument(help="The challenge.")],
+    phase: Annotated[str, typer.Argument(help="The phase whose hidden board to publish.")],
+) -> None:
+    """Show a phase's hidden board (`board: hidden` in its suite) to everyone."""
+    from server.challenges.service import publish_board
+
+    sessions = migrated_sessions(settings())
+    try:
+        with sessions.begin() as db:
+            publish_board(db, slug=slug, phase=phase)
+    except AppError as exc:
+        console.print(f"[red]error:[/] {exc.message}")
+        raise typer.Exit(1) from None
+    console.print(f"challenge {slug}: the board of phase {phase} is public")
 
 
 @challenge_app.command("reevaluate")

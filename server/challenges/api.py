@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter
 from fastapi import Path as FastAPIPath
 
-from server.accounts.deps import CallerDep
+from server.accounts.deps import AdminDep, Caller, CallerDep
 from server.challenges import service
 from server.challenges.quota import quota_use
 from server.challenges.schemas import (
@@ -39,6 +39,11 @@ def _phases(challenge: Challenge) -> list[PhaseOut]:
             opens_at=p.opens_at,
             closes_at=p.closes_at,
             open=p.is_open(now),
+            counts=p.counts,  # type: ignore[arg-type]  # the suite's Literal, stored as text
+            final_choice=p.final_choice,
+            after_close=p.after_close,  # type: ignore[arg-type]
+            board=p.board,  # type: ignore[arg-type]
+            published_at=p.published_at,
         )
         for p in challenge.phases
     ]
@@ -88,3 +93,23 @@ def challenge_detail(
         team_mode=challenge.team_mode,
         my_quota=quota,
     )
+
+
+SlugPath = Annotated[str, FastAPIPath(max_length=64, pattern=SLUG_PATTERN)]
+PhasePath = Annotated[str, FastAPIPath(max_length=32)]
+
+
+@router.post("/challenges/{slug}/phases/{phase}/close", tags=["admin"])
+def close_phase(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) -> ChallengeOut:
+    """Close the phase now (admins): later submissions go by its `after_close` rule."""
+    service.close_phase(db, slug=slug, phase=phase)
+    db.commit()
+    return challenge_detail(slug, Caller(user=admin, session=None), db)
+
+
+@router.post("/challenges/{slug}/phases/{phase}/publish", tags=["admin"])
+def publish_board(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) -> ChallengeOut:
+    """Show the phase's hidden board to everyone (admins)."""
+    service.publish_board(db, slug=slug, phase=phase)
+    db.commit()
+    return challenge_detail(slug, Caller(user=admin, session=None), db)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Literal
 
 from pydantic import BaseModel, Field
 
@@ -15,6 +16,21 @@ class PhaseOut(BaseModel):
     opens_at: datetime | None
     closes_at: datetime | None
     open: bool
+    counts: Literal["best", "last"] = Field(
+        default="best", description="which of a participant's submissions is their row"
+    )
+    final_choice: bool = Field(
+        default=False, description="participants may mark one submission final"
+    )
+    after_close: Literal["refuse", "post_deadline"] = Field(
+        default="refuse", description="what a submission after the close gets"
+    )
+    board: Literal["public", "hidden"] = Field(
+        default="public", description="hidden: each participant sees only their own rows"
+    )
+    published_at: datetime | None = Field(
+        default=None, description="when a hidden board was published to everyone"
+    )
 
 
 class TaskOut(BaseModel):

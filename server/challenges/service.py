@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import selectinload
 
 from evaluator import packages
+from evaluator.suite import Phase as SuitePhase
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
 from server.kit.errors import Conflict, Invalid, NotFound
 from server.models import Challenge, Phase, utcnow
@@ -82,11 +83,16 @@ def load_challenge(
         phase = existing.pop(name, None)
         if phase is None:
             phase = Phase(name=name, significance_level=spec.significance_level)
+            phase.counts, phase.final_choice, phase.after_close, phase.board = _rules_of(spec)
             challenge.phases.append(phase)
         elif phase.significance_level != spec.significance_level:
             # The tie groups change with the level: readers of the board read it again.
             phase.significance_level = spec.significance_level
             phase.leaderboard_version += 1
+        if _rules_of(phase) != _rules_of(spec):
+            phase.counts, phase.final_choice, phase.after_close, phase.board = _rules_of(spec)
+            # Who stands on the board, and who sees it, changed: its rows are recomputed.
+            regroup = True
         phase.public_seeds = isinstance(spec.seeds, PublicSeeds)
         phase.seed_commitment = commitment(suite, name, seed_secret)
         phase.opens_at = options.opens.get(name, phase.opens_at)
@@ -99,6 +105,57 @@ def load_challenge(
     if regroup:
         rebuild(db, challenge_id=challenge.id)
     return challenge
+
+
+def _rules_of(phase: Phase | SuitePhase) -> tuple[str, bool, str, str]:
+    return (phase.counts, phase.final_choice, phase.after_close, phase.board)
+
+
+def close_phase(db: DB, *, slug: str, phase: str, now: datetime | None = None) -> Phase:
+    """Close the phase now (an organizer's action): a submission racing it is either made
+    before the close or goes by the phase's `after_close` rule, never onto the official board
+    after it (the submit path holds the phase's row, `lock_phase`)."""
+    found = get_phase(get_challenge(db, slug=slug), phase)
+    locked = lock_phase(db, phase_id=found.id, write=True)
+    now = now or utcnow()  # read once the lock is ours: every submit before it is earlier
+    if locked.closes_at is not None and locked.closes_at <= now:
+        raise Conflict(
+            f"phase {phase!r} of {slug!r} closed at {locked.closes_at:%Y-%m-%d %H:%M} UTC"
+        )
+    if locked.opens_at is not None and now < locked.opens_at:
+        locked.opens_at = now  # a phase closed before it opened never opened
+    locked.closes_at = now
+    db.flush()
+    return locked
+
+
+def lock_phase(db: DB, *, phase_id: int, write: bool = False) -> Phase:
+    """The phase's row, read again under a lock: shared for a submit (submits do not wait on
+    each other), else the lock an update of the row takes (`FOR NO KEY UPDATE`: a change of
+    its dates; a final mark, whose board refresh updates the row, so that two marks never
+    both hold it shared and then wait on each other to update it)."""
+    locked = db.scalar(
+        select(Phase)
+        .where(Phase.id == phase_id)
+        .with_for_update(read=not write, key_share=write)
+        .execution_options(populate_existing=True)
+    )
+    if locked is None:
+        raise NotFound(f"no phase {phase_id}")
+    return locked
+
+
+def publish_board(db: DB, *, slug: str, phase: str, now: datetime | None = None) -> Phase:
+    """Show the phase's hidden board to everyone (an organizer's action; publishing twice
+    keeps the first date)."""
+    found = get_phase(get_challenge(db, slug=slug), phase)
+    if found.board != "hidden":
+        raise Conflict(f"phase {phase!r} of {slug!r} has a public board: nothing to publish")
+    if found.published_at is None:
+        found.published_at = now or utcnow()
+        found.leaderboard_version += 1  # cached snapshots were the hidden board's
+        db.flush()
+    return found
 
 
 def set_team_mode(db: DB, *, slug: str, on: bool) -> Challenge:

@@ -8,13 +8,16 @@ from fastapi import APIRouter, Query, Request, Response
 from fastapi import Path as FastAPIPath
 from starlette.concurrency import run_in_threadpool
 
-from server.kit.deps import PageNo, PerPage
+from server.accounts.deps import CallerDep
+from server.kit.deps import DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN
 from server.leaderboard.deps import BoardServices, services
+from server.leaderboard.late import post_deadline_board
 from server.leaderboard.paper import MEDIA_TYPE, SUFFIX, PaperFormat, paper_table, provenance
-from server.leaderboard.schemas import LeaderboardOut
+from server.leaderboard.schemas import LateRowOut, LeaderboardOut, PostDeadlineOut
 from server.leaderboard.snapshot import Snapshot
+from server.leaderboard.visibility import as_seen_by_caller
 
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
 
@@ -57,6 +60,10 @@ async def leaderboard(
     seconds while it changes), and every page, size and format is cut from it, so a page
     costs neither a thread nor a query.
 
+    A phase whose board is hidden (its rules' `board: hidden`) shows, until an organizer
+    publishes it, only the caller's own rows (their team's in team mode), unranked; admins see
+    it whole (docs/server.md, "Challenge rules").
+
     `version` reads an earlier board version: each re-evaluation of the phase (after a change
     of its suite or evaluator) publishes a new one, and the earlier ones stay readable; none
     given, the current one (docs/server.md, "Re-evaluation").
@@ -67,6 +74,8 @@ async def leaderboard(
         board = await run_in_threadpool(
             lambda: svc.boards.current(svc.sessions, slug=slug, phase=phase, board_version=version)
         )
+    if board.hidden:  # not published: who asks decides which rows they see
+        board = await run_in_threadpool(_as_seen, svc, board, request)
     if format in ("markdown", "latex"):
         paper: PaperFormat = "markdown" if format == "markdown" else "latex"
         text = await run_in_threadpool(_paper, svc, board, paper, page, per_page)
@@ -88,6 +97,11 @@ async def leaderboard(
     return Response(body, media_type="application/json")
 
 
+def _as_seen(svc: BoardServices, board: Snapshot, request: Request) -> Snapshot:
+    with svc.sessions() as db:
+        return as_seen_by_caller(db, board, request)
+
+
 def _paper(
     svc: BoardServices, board: Snapshot, format: PaperFormat, page: int, per_page: int
 ) -> str:
@@ -95,3 +109,18 @@ def _paper(
     with svc.sessions() as db:
         line = provenance(db, submission_ids=[s.submission_id for s in shown], alpha=board.alpha)
     return paper_table(board, format=format, page=page, per_page=per_page, line=line)
+
+
+@router.get("/challenges/{slug}/post-deadline", tags=["challenges"])
+def post_deadline(
+    slug: Annotated[str, FastAPIPath(max_length=64, pattern=SLUG_PATTERN)],
+    who: CallerDep,
+    db: DBDep,
+    phase: Annotated[str, Query(max_length=32)] = "test",
+) -> PostDeadlineOut:
+    """The phase's post-deadline board (a phase whose rules say `after_close: post_deadline`):
+    what was submitted after it closed, ranked apart from the official board."""
+    rows = post_deadline_board(db, slug=slug, phase=phase, viewer=who.user)
+    return PostDeadlineOut(
+        challenge=slug, phase=phase, items=[LateRowOut(**row.__dict__) for row in rows]
+    )

@@ -42,7 +42,11 @@ def challenge_page(
     quota = (
         quota_use(db, user=who.user, challenge=challenge, now=now) if who.user is not None else None
     )
-    board = top_rows(request, db, slug=challenge.slug, phase=shown.name, count=TOP_ROWS)
+    board = top_rows(
+        request, db, slug=challenge.slug, phase=shown.name, count=TOP_ROWS, viewer=who.user
+    )
+    organizer = who.user is not None and who.user.is_admin
+    hidden = not shown.board_shown_to_all() and not organizer  # its history would tell
     suite = suite_of(challenge)
     return render(
         request,
@@ -58,7 +62,7 @@ def challenge_page(
         now=now,
         quota=quota,
         board=board,
-        chart=request.app.state.score_history.chart(db, shown),
+        chart=None if hidden else request.app.state.score_history.chart(db, shown),
     )
 
 

@@ -22,8 +22,11 @@ from server.kit.deps import DBDep
 from server.kit.pages import render, templates
 from server.leaderboard.columns import board_columns
 from server.leaderboard.deps import services
+from server.leaderboard.late import post_deadline_board
 from server.leaderboard.service import Board, Row, suite_columns
 from server.leaderboard.snapshot import Snapshot
+from server.leaderboard.visibility import as_seen_by
+from server.models import User, utcnow
 
 router = APIRouter(include_in_schema=False)
 
@@ -31,19 +34,28 @@ SORT_LIMIT = 2000  # rows a sorted view reads; boards are ranked by score beyond
 
 
 def snapshot(
-    request: Request, db: DB, *, slug: str, phase: str, board_version: int | None = None
+    request: Request,
+    db: DB,
+    *,
+    slug: str,
+    phase: str,
+    viewer: User | None,
+    board_version: int | None = None,
 ) -> Snapshot:
     """The phase's board (of `board_version`; None: the current one) as the API serves it
-    (confirmed in the caller's session when due)."""
+    (confirmed in the caller's session when due), as `viewer` may see it (a hidden board)."""
     boards = services(request).boards
-    return boards.fresh(slug, phase, board_version) or boards.current_in(
+    board = boards.fresh(slug, phase, board_version) or boards.current_in(
         db, slug=slug, phase=phase, board_version=board_version
     )
+    return as_seen_by(db, board, user=viewer)
 
 
-def top_rows(request: Request, db: DB, *, slug: str, phase: str, count: int) -> Board:
+def top_rows(
+    request: Request, db: DB, *, slug: str, phase: str, count: int, viewer: User | None
+) -> Board:
     """The board's first rows in rank order, and how many it has (the challenge page's)."""
-    board = snapshot(request, db, slug=slug, phase=phase)
+    board = snapshot(request, db, slug=slug, phase=phase, viewer=viewer)
     return Board(rows=[board.row(i) for i in range(min(count, board.total))], total=board.total)
 
 
@@ -84,7 +96,9 @@ def leaderboard_page(
     if sort not in {c.key for c in columns}:
         sort = "rank"
     descending = dir == "desc" if dir else sort not in ("user", "rank")
-    board = snapshot(request, db, slug=challenge.slug, phase=shown.name, board_version=version)
+    board = snapshot(
+        request, db, slug=challenge.slug, phase=shown.name, viewer=who.user, board_version=version
+    )
     places: Sequence[int]
     if sort == "rank":
         places, total = range(board.total)[(page - 1) * per_page : page * per_page], board.total
@@ -152,4 +166,20 @@ def leaderboard_page(
         phase=shown,
         board_main=Markup(main),
         may_reevaluate=shown.pending_board_version is None and board.total > 0,
+        phase_open=shown.is_open(utcnow()),
     )
+
+
+@router.get("/challenges/{slug}/post-deadline")
+def post_deadline_page(
+    slug: str,
+    request: Request,
+    who: ViewerDep,
+    db: DBDep,
+    phase: Annotated[str, Query(max_length=32)] = "test",
+) -> Response:
+    """The phase's post-deadline board: what was submitted after it closed, ranked apart."""
+    challenge = get_challenge(db, slug=slug)
+    shown = shown_phase(challenge, name=phase)
+    rows = post_deadline_board(db, slug=challenge.slug, phase=shown.name, viewer=who.user)
+    return render(request, who, "post_deadline.html", challenge=challenge, phase=shown, rows=rows)

@@ -64,3 +64,22 @@ class LeaderboardOut(Page[LeaderboardRowOut]):
     phase: str
     tasks: list[str] = Field(description="The suite's tasks, in its order: the column order.")
     conditions: list[str] = Field(description="The suite's conditions, in its order.")
+
+
+class LateRowOut(BaseModel):
+    rank: int | None = Field(
+        description="1 for the best score; null on a hidden board's own rows (not published)"
+    )
+    username: str
+    submission_id: int
+    score: float
+    submitted_at: datetime
+
+
+class PostDeadlineOut(BaseModel):
+    challenge: str
+    phase: str
+    items: list[LateRowOut] = Field(
+        description="Each participant's row among what they submitted after the phase closed, "
+        "by the phase's `counts` rule; never part of the official board."
+    )

@@ -81,6 +81,8 @@ class Snapshot:
     conditions: list[str]
     suite_hash: str  # names the columns (tasks and conditions)
     environment: Environment | None = None  # the suite's now, which rows are compared with
+    hidden: bool = False
+    """A hidden board not published yet: each viewer sees their own rows (`shown_to`)."""
     checked: float = field(default_factory=time.monotonic)
     by_id: dict[int, Stored] = field(init=False)
     sorted_rows: dict[Sort, tuple[frozenset[int], list[Stored]]] = field(default_factory=dict)
@@ -139,6 +141,22 @@ class Snapshot:
         shown = self.rows[index].row(self.tasks, self.conditions)
         rank, tied, group = self.place(index)
         return replace(shown, rank=rank, tied=tied, tie_group=group)
+
+    def shown_to(self, *, organizer: bool, own: Callable[[Stored], bool]) -> Snapshot:
+        """The board as a viewer may see it: whole, unless it is hidden and they are not an
+        organizer; then their own rows alone, without rank or tie group, which would tell
+        them of the others'."""
+        if not self.hidden or organizer:
+            return self
+        rows = [s for s in self.rows if own(s)]
+        blank: list[int | None] = [None] * len(rows)
+        return replace(
+            self,
+            rows=rows,
+            ranks=blank,
+            ties=TieGroups(groups=list(blank), tied=[False] * len(rows), p_values={}),
+            sorted_rows={},
+        )
 
     def order(
         self, key: Callable[[Row], Any], name: str, descending: bool, limit: int
@@ -302,7 +320,8 @@ def read_whole(
     rows = [keep.get(entry.id) or _stored(db, entry, current) for entry in entries]
     ranks: list[int | None] = []
     _rank((s.baseline for s in rows), ranks)
-    alpha = next(p.significance_level for p in challenge.phases if p.id == phase_id)
+    found = next(p for p in challenge.phases if p.id == phase_id)
+    alpha = found.significance_level
     known = held.ties.p_values if held is not None else {}
     ties = count_groups(db, rows, ranks, alpha=alpha, known=known)
     return Snapshot(
@@ -319,6 +338,7 @@ def read_whole(
         conditions,
         challenge.suite_hash,
         environment=current,
+        hidden=not found.board_shown_to_all(),
     )
 
 
@@ -334,7 +354,7 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
     if db.get_bind().dialect.name not in STABLE_IDS:
         return None
     found = db.execute(
-        select(Challenge.suite_hash, Phase.significance_level)
+        select(Challenge.suite_hash, Phase.significance_level, Phase)
         .join(Phase, Phase.challenge_id == Challenge.id)
         .where(Phase.id == held.phase_id)
     ).first()
@@ -381,6 +401,7 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
         held.conditions,
         held.suite_hash,
         environment=held.environment,
+        hidden=not found[2].board_shown_to_all(),
         sorted_rows=dict(held.sorted_rows),
     )
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import Boolean, Float, ForeignKey, Integer, String, Text, UniqueConstraint
+from sqlalchemy import Boolean, Float, ForeignKey, Integer, String, Text, UniqueConstraint, false
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from server.models.base import Base, utcnow
@@ -56,9 +56,33 @@ class Phase(Base):
     significance_level: Mapped[float] = mapped_column(Float, default=0.05)
     """The board's tie groups' family-wise level: the suite's phase's `significance_level`."""
 
+    counts: Mapped[str] = mapped_column(String(8), default="best", server_default="best")
+    """"best" or "last": which of a participant's submissions is their row (docs/server.md,
+    Challenge rules); the suite's phase's `counts`."""
+    final_choice: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    """Participants may mark one submission final; it is their row once it succeeded."""
+    after_close: Mapped[str] = mapped_column(String(16), default="refuse", server_default="refuse")
+    """"refuse" or "post_deadline": what becomes of a submission made after `closes_at`."""
+    board: Mapped[str] = mapped_column(String(8), default="public", server_default="public")
+    """"public" or "hidden": a hidden board is the organizers' (and each participant's own
+    rows) until `published_at`."""
+    published_at: Mapped[datetime | None]
+    """When an organizer published the hidden board; None: not yet (or never hidden)."""
+
     challenge: Mapped[Challenge] = relationship(back_populates="phases", lazy="raise")
 
     def is_open(self, now: datetime) -> bool:
-        return (self.opens_at is None or self.opens_at <= now) and (
-            self.closes_at is None or now < self.closes_at
-        )
+        return self.has_opened(now) and (self.closes_at is None or now < self.closes_at)
+
+    def has_opened(self, now: datetime) -> bool:
+        return self.opens_at is None or self.opens_at <= now
+
+    def takes_late(self, now: datetime) -> bool:
+        """Whether a submission now goes to the post-deadline board (the phase closed, and its
+        organizers chose to take late ones)."""
+        closed = self.closes_at is not None and self.closes_at <= now
+        return closed and self.after_close == "post_deadline"
+
+    def board_shown_to_all(self) -> bool:
+        """Whether everyone sees the whole board (it is public, or published)."""
+        return self.board != "hidden" or self.published_at is not None

@@ -19,6 +19,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    false,
 )
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
@@ -56,6 +57,9 @@ class Submission(Base):
         Index("ix_submissions_user_created", "user_id", "created_at"),
         Index("ix_submissions_state", "state"),
         Index("ix_submissions_phase_user", "phase_id", "user_id"),
+        # One final choice per participant (or team) and phase: of two marks made at once one
+        # stands, whatever the code above does. NULLs (not a final choice) never collide.
+        Index("uq_submissions_final", "phase_id", "final_for", unique=True),
         CheckConstraint("attempt >= 1", name="attempt_positive"),
     )
 
@@ -106,6 +110,13 @@ class Submission(Base):
     participant's own. No foreign key: SQLite adds one only by rebuilding `submissions`, which
     cascades into every table that refers to it (alembic 0012); a re-evaluation has its
     original's owner, and goes with them."""
+
+    post_deadline: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    """Made after its phase closed: it stands on the post-deadline board, never on the official
+    one (docs/server.md, Challenge rules)."""
+    final_for: Mapped[str | None] = mapped_column(String(32))
+    """Whose final choice in its phase this submission is ("user:ID", or "team:ID" in team
+    mode), or None: unique per phase (`uq_submissions_final`)."""
 
     user: Mapped[User] = relationship(lazy="raise")
     challenge: Mapped[Challenge] = relationship(lazy="raise")

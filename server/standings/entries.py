@@ -21,8 +21,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import delete, select, update
+from sqlalchemy import case, delete, or_, select, update
 from sqlalchemy.orm import Session as DB
+from sqlalchemy.orm import aliased
 
 from evaluator.paired import Outcome, PackedOutcomes
 from evaluator.provenance import recorded_environment
@@ -52,22 +53,49 @@ def eligible_for(phase_id: int, board_version: int) -> tuple[Any, ...]:
         Submission.public.is_(True),
         Submission.hidden.is_(False),
         Submission.score.is_not(None),
+        Submission.post_deadline.is_(False),  # the post-deadline board's, never the official
     )
 
 
 _BEST = (Submission.score.desc(), Submission.created_at, Submission.id)
+_LAST = (Submission.created_at.desc(), Submission.id.desc())
+_MARKED = aliased(Submission)
+
+
+def participant_of(submission: Submission, *, team_mode: bool) -> str:
+    """Whose the submission is on a board, as a key: "team:ID" in team mode for one made in a
+    team, else "user:ID" (a final mark is one per such key and phase)."""
+    if team_mode and submission.team_id is not None:
+        return f"team:{submission.team_id}"
+    return f"user:{submission.user_id}"
+
+
+def row_order(*, counts: str, final_choice: bool) -> tuple[Any, ...]:
+    """The order of a participant's eligible submissions in a phase, their row first: their
+    final choice (or its re-evaluation) where the phase has one, then the best or the latest
+    (`counts`; docs/server.md, Challenge rules)."""
+    rule = _LAST if counts == "last" else _BEST
+    if not final_choice:
+        return rule
+    final = or_(
+        Submission.final_for.is_not(None),
+        Submission.reevaluation_of.in_(select(_MARKED.id).where(_MARKED.final_for.is_not(None))),
+    )
+    return (case((final, 0), else_=1), *rule)
 
 
 def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
     """Recompute a user's rows in a phase's leaderboard and, in team mode, the rows of the
     teams they submitted in (call inside the changing transaction)."""
-    team_mode = bool(
-        db.scalar(
-            select(Challenge.team_mode)
-            .join(Phase, Phase.challenge_id == Challenge.id)
-            .where(Phase.id == phase_id)
-        )
-    )
+    found = db.execute(
+        select(Challenge.team_mode, Phase)
+        .join(Phase, Phase.challenge_id == Challenge.id)
+        .where(Phase.id == phase_id)
+    ).first()
+    if found is None:
+        return
+    team_mode, rules = bool(found[0]), found[1]
+    order = row_order(counts=rules.counts, final_choice=rules.final_choice)
     # Serialise refreshes of one user (then of a team): the unique rows must not be raced.
     # Every writer locks a user before a team, and teams in id order.
     username = db.scalar(
@@ -90,7 +118,9 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
             .distinct()
         ).all()
         for team_id, version in sorted((t, v) for t, v in teams if t is not None):
-            _refresh_team(db, phase_id=phase_id, team_id=team_id, board_version=version)
+            _refresh_team(
+                db, phase_id=phase_id, team_id=team_id, board_version=version, order=order
+            )
     versions = db.scalars(
         select(Submission.board_version)
         .where(Submission.phase_id == phase_id, Submission.user_id == user_id)
@@ -104,6 +134,7 @@ def refresh(db: DB, *, phase_id: int, user_id: int) -> None:
             user_id=user_id,
             username=username,
             team_mode=team_mode,
+            order=order,
         )
     moved(db, phase_id)
     db.flush()
@@ -120,12 +151,19 @@ def _clear_user(db: DB, *, phase_id: int, user_id: int) -> None:
 
 
 def _fill_user(
-    db: DB, *, phase_id: int, board_version: int, user_id: int, username: str, team_mode: bool
+    db: DB,
+    *,
+    phase_id: int,
+    board_version: int,
+    user_id: int,
+    username: str,
+    team_mode: bool,
+    order: tuple[Any, ...],
 ) -> None:
     eligible = db.scalars(
         select(Submission)
         .where(*eligible_for(phase_id, board_version), Submission.user_id == user_id)
-        .order_by(*_BEST)
+        .order_by(*order)
     ).all()
     chosen = [s for s in eligible if s.baseline]
     own = [s for s in eligible if not s.baseline]
@@ -148,7 +186,9 @@ def _dissolved(db: DB, *, team_ids: set[int]) -> set[int | None]:
     return set(found)
 
 
-def _refresh_team(db: DB, *, phase_id: int, team_id: int, board_version: int) -> None:
+def _refresh_team(
+    db: DB, *, phase_id: int, team_id: int, board_version: int, order: tuple[Any, ...]
+) -> None:
     team = db.scalar(select(Team).where(Team.id == team_id).with_for_update(key_share=True))
     db.execute(
         delete(LeaderboardEntry).where(
@@ -167,7 +207,7 @@ def _refresh_team(db: DB, *, phase_id: int, team_id: int, board_version: int) ->
             Submission.team_id == team_id,
             Submission.baseline.is_(False),
         )
-        .order_by(*_BEST)
+        .order_by(*order)
         .limit(1)
     ).first()
     if best is not None:

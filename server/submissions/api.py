@@ -14,6 +14,7 @@ from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
 from server.models import Submission
 from server.submissions.deps import services
+from server.submissions.final import mark_final
 from server.submissions.method import Method
 from server.submissions.position import queue_out
 from server.submissions.schemas import (
@@ -67,6 +68,8 @@ def _submission_out(s: Submission) -> SubmissionOut:
         finished_at=s.finished_at,
         score=s.score,
         progress=s.progress,
+        final=s.final_for is not None,
+        post_deadline=s.post_deadline,
     )
 
 
@@ -184,6 +187,25 @@ def submission_logs(submission_id: Id, who: CallerDep, db: DBDep) -> LogsOut:
 def cancel_submission(submission_id: Id, user: UserDep, db: DBDep) -> SubmissionOut:
     s = get_owned(db, submission_id=submission_id, user=user)
     cancel(db, user, s)
+    db.commit()
+    return _submission_out(s)
+
+
+@router.put("/submissions/{submission_id}/final", tags=["submissions"])
+def mark_submission_final(submission_id: Id, user: UserDep, db: DBDep) -> SubmissionOut:
+    """Make it your final choice in its phase (where the phase gives one): the mark moves
+    from the submission that had it."""
+    s = get_owned(db, submission_id=submission_id, user=user)
+    mark_final(db, user=user, submission=s, final=True)
+    db.commit()
+    return _submission_out(s)
+
+
+@router.delete("/submissions/{submission_id}/final", tags=["submissions"])
+def unmark_submission_final(submission_id: Id, user: UserDep, db: DBDep) -> SubmissionOut:
+    """Take your final mark off it: the phase's `counts` rule picks your row again."""
+    s = get_owned(db, submission_id=submission_id, user=user)
+    mark_final(db, user=user, submission=s, final=False)
     db.commit()
     return _submission_out(s)
 

@@ -18,12 +18,13 @@ from sqlalchemy.orm import Session as DB
 
 from server.accounts.deps import PostedDep, ViewerDep
 from server.challenges.charts import TaskSuccess, success_bars
-from server.challenges.service import get_challenge, shown_phase
+from server.challenges.service import close_phase, get_challenge, publish_board, shown_phase
 from server.kit.deps import DBDep, Id
 from server.kit.errors import Forbidden
 from server.kit.pages import Viewer, redirect, render, signed_in
-from server.models import EpisodeResultRow, State, Submission, User
+from server.models import EpisodeResultRow, State, Submission, User, utcnow
 from server.submissions.deps import services
+from server.submissions.final import mark_final, markable
 from server.submissions.position import queue_out
 from server.submissions.reevaluation import reevaluations_of, start_reevaluation
 from server.submissions.service import (
@@ -136,6 +137,7 @@ def outcome(
         else [],
         "ended_badly": s.state in ENDED_BADLY,
         "final": s.state.final,
+        "may_mark_final": private and markable(s, now=utcnow()),
     }
 
 
@@ -235,6 +237,43 @@ def baseline_action(
     submission_id: Id, request: Request, who: PostedDep, db: DBDep, baseline: Flag
 ) -> Response:
     return _edit(request, who, db, submission_id, admin=True, baseline=baseline == "true")
+
+
+@router.post("/submissions/{submission_id}/final")
+def final_action(
+    submission_id: Id, request: Request, who: PostedDep, db: DBDep, final: Flag
+) -> Response:
+    """The owner marks the submission as their final choice in its phase, or takes it off."""
+    user = signed_in(request, who)
+    s = get_owned(db, submission_id=submission_id, user=user)
+    mark_final(db, user=user, submission=s, final=final == "true")
+    db.commit()
+    return redirect(f"/submissions/{s.id}")
+
+
+def _phase_action(
+    request: Request, who: Viewer, db: DB, slug: str, phase: str, act: Any
+) -> Response:
+    _admin(request, who)
+    act(db, slug=slug, phase=phase)
+    db.commit()
+    return redirect(f"/challenges/{slug}/leaderboard?{urlencode({'phase': phase})}")
+
+
+@router.post("/challenges/{slug}/close")
+def close_action(
+    slug: str, request: Request, who: PostedDep, db: DBDep, phase: Annotated[str, Form()]
+) -> Response:
+    """An admin closes a phase now (docs/server.md, Challenge rules)."""
+    return _phase_action(request, who, db, slug, phase, close_phase)
+
+
+@router.post("/challenges/{slug}/publish")
+def publish_action(
+    slug: str, request: Request, who: PostedDep, db: DBDep, phase: Annotated[str, Form()]
+) -> Response:
+    """An admin publishes a phase's hidden board."""
+    return _phase_action(request, who, db, slug, phase, publish_board)
 
 
 @router.post("/challenges/{slug}/reevaluate")

@@ -45,9 +45,11 @@ COPIED = (
     "hidden",
     "baseline",
     "created_at",
+    "post_deadline",
 )
 """What a re-evaluation keeps of its original: whose it is, what runs, how it is shown, and when
-it was submitted (the board's "submitted" and its tie-break stay the participant's)."""
+it was submitted (the board's "submitted" and its tie-break stay the participant's), and
+whether it came late. Its final mark stays on the original, and counts for its re-evaluations."""
 
 
 class NothingToReevaluate(Conflict):

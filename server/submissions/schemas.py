@@ -113,6 +113,10 @@ class SubmissionOut(BaseModel):
     finished_at: datetime | None
     score: float | None
     progress: dict[str, object] | None
+    final: bool = Field(default=False, description="its owner's final choice in its phase")
+    post_deadline: bool = Field(
+        default=False, description="made after its phase closed: on the post-deadline board"
+    )
     queue: QueueOut | None = Field(
         default=None, description="while queued: its place and expected start"
     )

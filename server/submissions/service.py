@@ -19,7 +19,7 @@ from sqlalchemy.orm import joinedload
 from evaluator import results
 from evaluator.bundled import LOCAL_PREFIX
 from server.challenges.quota import check_quota
-from server.challenges.service import check_servable
+from server.challenges.service import check_servable, lock_phase
 from server.kit.errors import Conflict, Forbidden, Invalid, NotFound, Unavailable
 from server.models import (
     FINAL_STATES,
@@ -107,6 +107,7 @@ def submit(
 ) -> Submission:
     """Accept a submission (state `queued`) or raise; the caller commits, then dispatches.
     `policy_gpus`: the GPUs this service can give a policy (`MANIEVAL_POLICY_GPUS`)."""
+    stamped = now
     now = now or utcnow()
     if require_verified_email and user.email_verified_at is None:
         raise Forbidden(
@@ -117,19 +118,18 @@ def submit(
     if len(description) > 2000:
         raise Invalid("description too long", fields={"description": "at most 2000 characters"})
     named = (method or Method()).checked().stored()
-    if not phase.is_open(now):
-        when = phase.opens_at if phase.opens_at and now < phase.opens_at else phase.closes_at
-        verb = "opens" if phase.opens_at and now < phase.opens_at else "closed"
-        raise Conflict(
-            f"phase {phase.name!r} of {challenge.slug!r} {verb} at {when:%Y-%m-%d %H:%M} UTC",
-            fields={"phase": f"not open for submissions ({verb})"},
-        )
+    check_open(challenge, phase, now=now)
     check_servable(challenge, policy_gpus=policy_gpus)
     # Resolve before taking the lock: it talks to the registry.
     resolved = resolve_as(resolve, image, owner=user.username)
 
     # Locks the user (and their team): concurrent submissions cannot both pass the quota.
     team_id = check_quota(db, user=user, challenge=challenge, now=now)
+    # Hold the phase's row (shared) and read its dates again, then the time: an organizer's
+    # close (`close_phase`) is wholly before this submission or wholly after it.
+    phase = lock_phase(db, phase_id=phase.id)
+    now = stamped or utcnow()
+    late = check_open(challenge, phase, now=now)
 
     submission = Submission(
         user=user,  # the objects, not only their ids: the answer shows them
@@ -146,6 +146,7 @@ def submit(
         reason="waiting for a worker",
         attempt=1,
         board_version=phase.pending_board_version or phase.board_version,
+        post_deadline=late,
         created_at=now,
         updated_at=now,
     )
@@ -164,6 +165,22 @@ def submit(
     db.add(Outbox(submission_id=submission.id, attempt=1, created_at=now))
     db.flush()
     return submission
+
+
+def check_open(challenge: Challenge, phase: Phase, *, now: datetime) -> bool:
+    """Conflict if the phase takes no submission now; True if it takes it for its
+    post-deadline board, False for the official one."""
+    if phase.is_open(now):
+        return False
+    if phase.has_opened(now) and phase.takes_late(now):
+        return True
+    early = not phase.has_opened(now)
+    when = phase.opens_at if early else phase.closes_at
+    verb = "opens" if early else "closed"
+    raise Conflict(
+        f"phase {phase.name!r} of {challenge.slug!r} {verb} at {when:%Y-%m-%d %H:%M} UTC",
+        fields={"phase": f"not open for submissions ({verb})"},
+    )
 
 
 def visible_to(submission: Submission, user: User | None) -> bool:
