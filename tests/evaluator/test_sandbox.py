@@ -19,8 +19,8 @@ import pytest
 from evaluator import sandbox, sources
 from evaluator.endpoint import PolicyEndpoint
 from evaluator.evaluation import evaluate
-from evaluator.results import EvaluationResult
 from evaluator.limits import Breach
+from evaluator.results import EvaluationResult
 from evaluator.sandbox import Usage, breached, minimal_cover
 from evaluator.sandbox_command import (
     MIB,
