@@ -18,6 +18,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from internal_api.schemas import FINAL_STATES
 from manieval.service import EMBEDDED_WORKER, Service
 from server.app import create_app
 from server.kit.db import make_engine, session_factory
@@ -31,7 +32,7 @@ from tests.cli.conftest import running_server
 from worker.embedded import EmbeddedWorker
 
 API = "/api/v1"
-FINAL = ("succeeded", "failed", "error", "cancelled", "timed_out")
+FINAL = {state.value for state in FINAL_STATES}  # as the API spells them
 pytestmark = [pytest.mark.sim, pytest.mark.long]
 
 

@@ -23,6 +23,7 @@ import pytest
 from PIL import Image
 
 from evaluator.video import poster_name
+from internal_api.schemas import FINAL_STATES
 from manieval.service import Service
 from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
@@ -33,7 +34,7 @@ from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium
 pytestmark = pytest.mark.sim
 
 API = "/api/v1"
-FINAL = ("succeeded", "failed", "error", "cancelled", "timed_out")
+FINAL = {state.value for state in FINAL_STATES}  # as the API spells them
 NAME = "nominal--PickCube-v1--ep0.mp4"
 SUITE = """\
 name: video-tiny

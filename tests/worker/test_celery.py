@@ -30,6 +30,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 import evaluator.bundled
 from evaluator import packages
+from internal_api.schemas import FINAL_STATES
 from internal_api.tasks import RECONCILE
 from manieval.service import Service
 from server.kit.settings import Settings
@@ -53,7 +54,7 @@ from tests.worker.redis_server import Redis, free_port
 pytestmark = [pytest.mark.sim, pytest.mark.long]
 REPO = Path(__file__).resolve().parents[2]
 TASK_PACKAGES = REPO / "tests" / "data" / "task_packages"
-FINAL = {"succeeded", "failed", "error", "cancelled", "timed_out"}
+FINAL = {state.value for state in FINAL_STATES}  # as the API spells them
 STOP_S = 120.0  # a cancelled or lost run is left well within this (it would run for minutes)
 
 # The `local:` policies of these tests: the bundled ones, one that crashes at once, and one

@@ -31,6 +31,7 @@ import redis as redis_client
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from internal_api.schemas import FINAL_STATES
 from manieval.service import Service
 from server.kit.settings import Settings
 from server.models import State, Submission, Transition, utcnow
@@ -46,7 +47,7 @@ pytestmark = [pytest.mark.sim, pytest.mark.long, pytest.mark.timeout(900)]
 ROUNDS = 10
 CLAIM_ROUNDS = 3  # each round stops the database at the same point of a claim
 OUTAGE_S = 5.0
-FINAL = {"succeeded", "failed", "error", "cancelled", "timed_out"}
+FINAL = {state.value for state in FINAL_STATES}  # as the API spells them
 REPO = Path(__file__).resolve().parents[2]
 # A run of the scripted policy long enough to span an outage of OUTAGE_S (about 15 s here).
 MID = {"max_episode_steps: 12, episodes: 2": "max_episode_steps: 60, episodes: 4"}
