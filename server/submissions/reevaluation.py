@@ -19,15 +19,14 @@ from server.kit.errors import Conflict, Forbidden
 from server.models import (
     Challenge,
     LeaderboardEntry,
-    Outbox,
     Phase,
     State,
     Submission,
-    Transition,
     User,
     utcnow,
 )
 from server.submissions.changes import changed
+from server.submissions.states import queued_first
 
 COPIED = (
     "user_id",
@@ -125,17 +124,7 @@ def _copy(db: DB, original: Submission, *, version: int, by: str, now: datetime)
     db.add(copy)
     db.flush()
     reason = f"re-evaluation of submission {original.id} for board version {version}, by {by}"
-    db.add(
-        Transition(
-            submission_id=copy.id,
-            attempt=1,
-            from_state=None,
-            to_state=State.QUEUED,
-            reason=reason[:2000],
-            at=now,
-        )
-    )
-    db.add(Outbox(submission_id=copy.id, attempt=1, created_at=now))
+    queued_first(db, copy, reason, now=now)
     changed(db, copy.id)
     return copy.id
 

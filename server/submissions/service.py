@@ -25,7 +25,6 @@ from server.models import (
     FINAL_STATES,
     Challenge,
     EpisodeResultRow,
-    Outbox,
     Phase,
     State,
     Submission,
@@ -38,7 +37,7 @@ from server.standings.entries import refresh
 from server.standings.versions import publish_when_done
 from server.submissions.changes import changed
 from server.submissions.method import Method
-from server.submissions.states import new_attempt, transition
+from server.submissions.states import new_attempt, queued_first, transition
 
 
 @dataclass(frozen=True)
@@ -152,17 +151,7 @@ def submit(
     )
     db.add(submission)
     db.flush()
-    db.add(
-        Transition(
-            submission_id=submission.id,
-            attempt=1,
-            from_state=None,
-            to_state=State.QUEUED,
-            reason="submitted",
-            at=now,
-        )
-    )
-    db.add(Outbox(submission_id=submission.id, attempt=1, created_at=now))
+    queued_first(db, submission, "submitted", now=now)
     db.flush()
     return submission
 

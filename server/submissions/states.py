@@ -95,6 +95,22 @@ def transition(
     return True
 
 
+def queued_first(db: DB, submission: Submission, reason: str, *, now: datetime) -> None:
+    """A new submission (flushed, QUEUED at attempt 1; or a re-evaluation's copy): its first
+    transition, and the outbox row that wakes a worker once the transaction commits."""
+    db.add(
+        Transition(
+            submission_id=submission.id,
+            attempt=1,
+            from_state=None,
+            to_state=State.QUEUED,
+            reason=reason[:2000],
+            at=now,
+        )
+    )
+    db.add(Outbox(submission_id=submission.id, attempt=1, created_at=now))
+
+
 def new_attempt(
     db: DB,
     submission: Submission,
