@@ -1,11 +1,13 @@
 """Operator commands of the server: `manieval db upgrade`, `manieval admin create`,
-`manieval challenge load`, `challenge packages`, `challenge teams` and `challenge reevaluate`
+`manieval challenge load`, `challenge verify`, `challenge packages`, `challenge teams` and
+`challenge reevaluate`
 (`manieval serve` and `demo` compose
 it with the worker: `manieval/serve.py`)."""
 
 from __future__ import annotations
 
 import getpass
+import sys
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated
@@ -134,14 +136,24 @@ def challenge_load(
             show_default=False,
         ),
     ] = None,
+    unverified: Annotated[
+        bool,
+        typer.Option(
+            "--unverified",
+            help="Load it without a passing verification report beside the suite "
+            "(`manieval challenge verify`); its page says so.",
+        ),
+    ] = False,
 ) -> None:
-    """Create a challenge from a suite, or update the challenge of that name."""
+    """Create a challenge from a suite, or update the challenge of that name. The suite must
+    have passed `manieval challenge verify` unless told `--unverified`."""
     from server.challenges.service import (
         ChallengeOptions,
         load_challenge,
         policy_refusal,
         suite_of,
     )
+    from server.challenges.verification import Unverified
 
     s = settings()
     options = ChallengeOptions(
@@ -152,6 +164,7 @@ def challenge_load(
         closes=_dates(closes, "--closes"),
         episodes=episodes,
         teams=teams,
+        verified_only=not unverified,
     )
     sessions = migrated_sessions(s)
     try:
@@ -166,10 +179,22 @@ def challenge_load(
             phases = [(p.name, p.seed_commitment) for p in challenge.phases]
             refusal = policy_refusal(challenge, policy_gpus=s.policy_gpus)
             loaded = suite_of(challenge)
+            problems = (challenge.verification or {}).get("problems", [])
+    except Unverified as exc:
+        console.print(f"[red]error:[/] {exc.message}", highlight=False)
+        console.print(
+            f"verify it first (`manieval challenge verify {suite} --reference POLICY`), "
+            "or load it with --unverified"
+        )
+        raise typer.Exit(1) from None
     except (SuiteError, AppError) as exc:
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(1) from None
     console.print(f"challenge {slug} loaded{' (teams)' if teams else ''}")
+    if problems:
+        console.print(f"[yellow]warning:[/] {slug} is unverified (its page says so):")
+        for problem in problems:
+            console.print(f"  {problem}", highlight=False)
     _print_packages(loaded)
     for name, commitment in phases:
         console.print(f"  phase {name}: seed commitment {commitment}")
@@ -214,6 +239,72 @@ def challenge_packages(
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(1) from None
     print(f"package_versions: {json.dumps(pinned.package_versions)}")
+
+
+@challenge_app.command("verify")
+def challenge_verify(
+    suite: Annotated[str, typer.Argument(help="Suite file, or the name of a bundled suite.")],
+    reference: Annotated[
+        str,
+        typer.Option(
+            help="The organizer's reference solution: a policy directory holding policy.py, "
+            "or a bundled policy's name (scripted)."
+        ),
+    ],
+    episodes: Annotated[
+        int | None, typer.Option(min=1, help="Episodes per task (default: the suite's).")
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the report here [default: beside the suite, "
+            "NAME.verification.json, where `challenge load` looks for it]."
+        ),
+    ] = None,
+) -> None:
+    """Run the reference solution (on 1, then 2 workers) and the random policy on the dev
+    seeds, print each task's success, step headroom and cost, and write the report that
+    `challenge load` asks for (docs/verification.md). Needs no database; exits 1 on failure."""
+    from evaluator import packages
+    from evaluator.bundled import bundled_policies
+    from evaluator.suite import load_suite
+    from evaluator.verification import report_path, verify
+    from server.challenges.verification import report_table
+
+    policy = Path(reference)
+    if not policy.is_dir():
+        policy = bundled_policies().get(reference, policy)
+    if not (policy / "policy.py").is_file():
+        known = ", ".join(bundled_policies())
+        console.print(
+            f"[red]error:[/] --reference {reference}: no policy.py there, and no bundled "
+            f"policy of that name (bundled: {known})"
+        )
+        raise typer.Exit(2)
+    ref = Path(suite) if Path(suite).exists() else suite
+    try:
+        pinned, _ = packages.pin(load_suite(ref))
+        report = verify(
+            pinned,
+            policy,
+            episodes=episodes,
+            on_run=lambda name, plan: console.print(
+                f"running the {name}: {plan.episode_count()} episodes"
+            ),
+        )
+    except SuiteError as exc:
+        console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(2) from None
+    target = out or report_path(ref)
+    target.write_text(report.model_dump_json(indent=2) + "\n", encoding="utf-8")
+    # Whole rows in a log or a pipe too, where rich would assume 80 columns and cut names.
+    Console(width=None if sys.stdout.isatty() else 140).print(report_table(report))
+    for failure in report.failures:
+        console.print(f"[red]failed:[/] {failure}", highlight=False)
+    verdict = "passed" if report.passed else "FAILED"
+    console.print(f"verification {verdict}; report written to {target}")
+    if not report.passed:
+        raise typer.Exit(1)
 
 
 @challenge_app.command("teams")
