@@ -17,8 +17,10 @@ from server.challenges.schemas import (
     PhaseOut,
     QuotaOut,
     TaskOut,
+    VerificationOut,
 )
 from server.challenges.service import get_challenge, suite_of
+from server.challenges.verification import stored_verification
 from server.kit.deps import DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
@@ -87,4 +89,12 @@ def challenge_detail(
         quota_concurrent=challenge.quota_concurrent,
         team_mode=challenge.team_mode,
         my_quota=quota,
+        verification=_verification(challenge),
     )
+
+
+def _verification(challenge: Challenge) -> VerificationOut | None:
+    found = stored_verification(challenge.verification)
+    if found is None:
+        return None
+    return VerificationOut(passed=found.passed, problems=found.problems, report=found.report)

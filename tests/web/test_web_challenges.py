@@ -157,7 +157,7 @@ def test_a_team_mode_challenge_says_it_counts_per_team_and_whose_quota_is_shown(
     assert "Your team's quota (grasp-lab): 0 of 3 used" in html
 
 
-def test_challenge_page_shows_the_verification_report(
+def test_challenge_page_and_api_show_the_verification_report(
     client: TestClient, db: Session, tmp_path: Path
 ) -> None:
     suite = suite_copy(tmp_path, SUITE)
@@ -172,6 +172,10 @@ def test_challenge_page_shows_the_verification_report(
     assert "9 of 10 (at least 50%)" in section
     assert "0 of 10 (under 20%)" in section
     assert "identical" in section
+    api = client.get("/api/v1/challenges/server-tiny").json()["verification"]
+    assert api["passed"] is True
+    assert api["problems"] == []
+    assert api["report"]["tasks"][0]["reference_successes"] == 9
 
 
 def test_challenge_page_says_a_challenge_loaded_unverified_is_not_verified(
@@ -181,3 +185,6 @@ def test_challenge_page_says_a_challenge_loaded_unverified_is_not_verified(
     section = html.split('id="verification-heading"')[1].split("</section>")[0]
     assert "not verified" in section
     assert "no verification report at" in section
+    api = client.get("/api/v1/challenges/server-tiny").json()["verification"]
+    assert api["passed"] is False
+    assert api["report"] is None
