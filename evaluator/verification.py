@@ -176,6 +176,21 @@ def policy_label(directory: Path) -> str:
     return f"{LOCAL_PREFIX}{name}" if name else f"dir:{directory.resolve()}"
 
 
+def reference_policy(reference: str) -> Path:
+    """The reference's policy directory: `reference` itself, or the bundled policy of that
+    name; ValueError naming both where neither holds a `policy.py`."""
+    policy = Path(reference)
+    if not policy.is_dir():
+        policy = bundled_policies().get(reference, policy)
+    if not (policy / "policy.py").is_file():
+        known = ", ".join(bundled_policies())
+        raise ValueError(
+            f"--reference {reference}: no policy.py there, and no bundled policy of that name "
+            f"(bundled: {known})"
+        )
+    return policy
+
+
 def random_policy() -> Path:
     """The bundled random policy's directory."""
     return bundled_policies()[RANDOM_POLICY]

@@ -10,7 +10,7 @@ import getpass
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from pydantic import ValidationError
@@ -18,6 +18,9 @@ from rich.console import Console
 from sqlalchemy.orm import Session, sessionmaker
 
 from evaluator.suite import Suite, SuiteError
+
+if TYPE_CHECKING:  # the evaluator's simulator is imported when `challenge verify` runs
+    from evaluator.verification import VerificationReport
 from server.kit.errors import AppError
 from server.kit.settings import Settings
 
@@ -266,23 +269,12 @@ def challenge_verify(
     seeds, print each task's success, step headroom and cost, and write the report that
     `challenge load` asks for (docs/verification.md). Needs no database; exits 1 on failure."""
     from evaluator import packages
-    from evaluator.bundled import bundled_policies
     from evaluator.suite import load_suite
-    from evaluator.verification import report_path, verify
-    from server.challenges.verification import report_table
+    from evaluator.verification import reference_policy, report_path, verify
 
-    policy = Path(reference)
-    if not policy.is_dir():
-        policy = bundled_policies().get(reference, policy)
-    if not (policy / "policy.py").is_file():
-        known = ", ".join(bundled_policies())
-        console.print(
-            f"[red]error:[/] --reference {reference}: no policy.py there, and no bundled "
-            f"policy of that name (bundled: {known})"
-        )
-        raise typer.Exit(2)
     ref = Path(suite) if Path(suite).exists() else suite
     try:
+        policy = reference_policy(reference)
         pinned, _ = packages.pin(load_suite(ref))
         report = verify(
             pinned,
@@ -292,19 +284,25 @@ def challenge_verify(
                 f"running the {name}: {plan.episode_count()} episodes"
             ),
         )
-    except SuiteError as exc:
-        console.print(f"[red]error:[/] {exc}")
+    except ValueError as exc:  # SuiteError among them
+        console.print(f"[red]error:[/] {exc}", highlight=False)
         raise typer.Exit(2) from None
     target = out or report_path(ref)
     target.write_text(report.model_dump_json(indent=2) + "\n", encoding="utf-8")
+    _print_report(report, target)
+    if not report.passed:
+        raise typer.Exit(1)
+
+
+def _print_report(report: VerificationReport, target: Path) -> None:
+    from server.challenges.verification import report_table
+
     # Whole rows in a log or a pipe too, where rich would assume 80 columns and cut names.
     Console(width=None if sys.stdout.isatty() else 140).print(report_table(report))
     for failure in report.failures:
         console.print(f"[red]failed:[/] {failure}", highlight=False)
     verdict = "passed" if report.passed else "FAILED"
     console.print(f"verification {verdict}; report written to {target}")
-    if not report.passed:
-        raise typer.Exit(1)
 
 
 @challenge_app.command("teams")

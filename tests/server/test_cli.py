@@ -299,3 +299,17 @@ def test_a_suite_changed_after_its_verification_must_be_verified_again(env: Path
     # How it is checked is no part of what it names: new thresholds need no new report.
     suite.write_text(SUITE.read_text() + "verification: {reference_min_success: 0.8}\n")
     assert runner.invoke(app, ["challenge", "load", str(suite)]).exit_code == 0
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["maniskill-core", "--reference", "nope"], "no bundled policy of that name (bundled: "),
+        (["no-such-suite", "--reference", "scripted"], "no suite file"),
+        (["maniskill-core"], "Missing option '--reference'"),
+    ],
+)
+def test_challenge_verify_errors(args: list[str], message: str) -> None:
+    r = runner.invoke(app, ["challenge", "verify", *args])
+    assert r.exit_code == 2, r.output
+    assert message in r.output
