@@ -21,6 +21,7 @@ from evaluator.suite import Suite, SuiteError
 
 if TYPE_CHECKING:  # the evaluator's simulator is imported when `challenge verify` runs
     from evaluator.verification import VerificationReport
+    from server.challenges.verification import Verification
 from server.kit.errors import AppError
 from server.kit.settings import Settings
 
@@ -156,7 +157,7 @@ def challenge_load(
         policy_refusal,
         suite_of,
     )
-    from server.challenges.verification import Unverified
+    from server.challenges.verification import Unverified, stored_verification
 
     s = settings()
     options = ChallengeOptions(
@@ -182,7 +183,7 @@ def challenge_load(
             phases = [(p.name, p.seed_commitment) for p in challenge.phases]
             refusal = policy_refusal(challenge, policy_gpus=s.policy_gpus)
             loaded = suite_of(challenge)
-            problems = (challenge.verification or {}).get("problems", [])
+            verification = stored_verification(challenge.verification)
     except Unverified as exc:
         console.print(f"[red]error:[/] {exc.message}", highlight=False)
         console.print(
@@ -194,10 +195,7 @@ def challenge_load(
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(1) from None
     console.print(f"challenge {slug} loaded{' (teams)' if teams else ''}")
-    if problems:
-        console.print(f"[yellow]warning:[/] {slug} is unverified (its page says so):")
-        for problem in problems:
-            console.print(f"  {problem}", highlight=False)
+    _print_verification(slug, verification)
     _print_packages(loaded)
     for name, commitment in phases:
         console.print(f"  phase {name}: seed commitment {commitment}")
@@ -209,6 +207,23 @@ def challenge_load(
             markup=True,
             highlight=False,
         )
+
+
+def _print_verification(slug: str, verification: Verification | None) -> None:
+    """What the challenge's page will say of its verification."""
+    if verification is None:
+        return
+    report = verification.report
+    if verification.passed and report is not None:
+        console.print(
+            f"  verified by {report.reference}: {report.tasks[0].episodes} episodes a task on "
+            f"the {report.phase} seeds, {report.created_at:%Y-%m-%d}",
+            highlight=False,
+        )
+        return
+    console.print(f"[yellow]warning:[/] {slug} is unverified (its page says so):")
+    for problem in verification.problems:
+        console.print(f"  {problem}", highlight=False)
 
 
 def _print_packages(suite: Suite) -> None:
@@ -270,7 +285,8 @@ def challenge_verify(
     `challenge load` asks for (docs/verification.md). Needs no database; exits 1 on failure."""
     from evaluator import packages
     from evaluator.suite import load_suite
-    from evaluator.verification import reference_policy, report_path, verify
+    from evaluator.verification import report_path
+    from evaluator.verify import reference_policy, verify
 
     ref = Path(suite) if Path(suite).exists() else suite
     try:

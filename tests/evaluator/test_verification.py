@@ -1,6 +1,6 @@
 """Verification before opening (evaluator/verification.py): how a report is judged against a
 suite, and the bundled suites' own reports. `manieval challenge verify` itself, on real
-ManiSkill tasks: tests/evaluator/test_verify_cli.py."""
+ManiSkill tasks: tests/server/test_cli_verify.py."""
 
 from __future__ import annotations
 
@@ -12,9 +12,7 @@ import yaml
 from evaluator import packages
 from evaluator.suite import SUITES_DIR, Suite, SuiteError, VerificationThresholds, load_suite
 from evaluator.verification import (
-    policy_label,
     problems,
-    random_policy,
     read_report,
     report_path,
     verification_phase,
@@ -117,11 +115,6 @@ def test_verification_runs_on_the_dev_seeds_or_else_the_first_public_ones() -> N
     secret_only = suite.model_copy(update={"phases": {"test": suite.phases["test"]}})
     with pytest.raises(SuiteError, match="no phase with public seeds"):
         verification_phase(secret_only)
-
-
-def test_a_bundled_policy_is_named_the_same_on_every_machine(tmp_path: Path) -> None:
-    assert policy_label(random_policy()) == "local:random"
-    assert policy_label(tmp_path) == f"dir:{tmp_path.resolve()}"
 
 
 @pytest.mark.parametrize("name", ["maniskill-core", "maniskill-visual"])

@@ -273,6 +273,7 @@ def test_challenge_load_takes_a_verified_suite_and_keeps_its_report(env: Path) -
     r = runner.invoke(app, ["challenge", "load", str(suite)])
     assert r.exit_code == 0, r.output
     assert "unverified" not in r.output
+    assert "verified by local:scripted: 10 episodes a task on the dev seeds, 2026-11-27" in r.output
     with db_session(env) as db:
         challenge = db.scalar(select(Challenge))
         assert challenge is not None
