@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from evaluator import packages
+from evaluator import packages, pool
 from evaluator.suite import load_suite
 from evaluator.verification import problems, read_report
 from manieval.cli import app
@@ -58,6 +58,9 @@ def test_a_task_whose_success_is_unreachable_fails_verification_by_name(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.syspath_prepend(str(PACKAGES_DIR))
+    # Warm evaluator processes that an earlier test left keep the path they were started
+    # with: the 2-worker run needs fresh ones, which see the test package.
+    pool.close_idle()
     suite = tmp_path / "broken-pick.yaml"
     suite.write_text(BROKEN_SUITE)
     reference = tmp_path / "reference"
