@@ -204,6 +204,21 @@ class EvaluationResult(_Doc):
     videos: list[Video] = []
 
 
+TIMINGS = frozenset({"wall_time_s", "policy_time_s"})
+"""Fields of an episode's record that measure time: no two runs share them."""
+
+
+def episode_records(result: EvaluationResult) -> list[dict[str, object]]:
+    """Every episode's record except its timings, which no two runs share: two evaluations of a
+    deterministic policy on the same plan give equal lists, however many workers ran them."""
+    return [
+        {"condition": c.name, "task": t.env_id, **e.model_dump(exclude=set(TIMINGS))}
+        for c in result.conditions
+        for t in c.tasks
+        for e in t.episodes
+    ]
+
+
 def ran(episode: EpisodeResult) -> bool:
     """Whether the episode ran, in whole or in part: those planned that an evaluation stopped
     before (or a policy that never connected never reached) are `not_run`."""

@@ -31,6 +31,24 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class VerificationThresholds(_Strict):
+    """What `manieval challenge verify` asks of every task before the suite opens
+    (docs/verification.md): the organizer's reference solves it, a random policy does not."""
+
+    reference_min_success: float = Field(default=0.5, ge=0, le=1)
+    """The least success rate of the reference solution on each task, on the dev seeds."""
+    random_max_success: float = Field(default=0.2, gt=0, le=1)
+    """The random policy's success rate on each task stays under this: the task is not
+    trivial."""
+
+
+class TaskThresholds(_Strict):
+    """One task's own thresholds, over the suite's `verification` where given."""
+
+    reference_min_success: float | None = Field(default=None, ge=0, le=1)
+    random_max_success: float | None = Field(default=None, gt=0, le=1)
+
+
 class TaskConfig(_Strict):
     """One ManiSkill task as the suite runs it."""
 
@@ -43,6 +61,10 @@ class TaskConfig(_Strict):
     instruction: str = Field(default="", max_length=1000)
     """What the task asks, in words, for policies that take a language instruction; it reaches
     the policy in the task spec. Empty: none (and not part of the hash)."""
+    verification: TaskThresholds = TaskThresholds()
+    """This task's verification thresholds where they differ from the suite's (a task the
+    reference does not solve yet: `reference_min_success: 0`, which the report then shows).
+    Not in the hash, as the suite's."""
 
 
 class PublicSeeds(_Strict):
@@ -240,6 +262,10 @@ class Suite(_Strict):
     """What the policy's container is given (`policy: {gpus: 1}`). Not in the hash: like the
     service's CPU and memory limits, hardware makes a policy faster or slower, while what it
     is scored on (tasks, seeds, conditions, time limits) stays what the hash names."""
+    verification: VerificationThresholds = VerificationThresholds()
+    """What `manieval challenge verify` asks of each task (docs/verification.md). How the suite
+    is checked before it opens, not what a policy is scored on: not in the hash, and a stored
+    report is judged again against the suite's thresholds whenever the suite is loaded."""
 
     @model_validator(mode="after")
     def _unique_names(self) -> Suite:
@@ -291,6 +317,11 @@ class Suite(_Strict):
             )
         return self
 
+    def thresholds(self, env_id: str) -> VerificationThresholds:
+        """What verification asks of the task `env_id`: its own thresholds over the suite's."""
+        own = self.task(env_id).verification.model_dump(exclude_none=True)
+        return self.verification.model_copy(update=own)
+
     def task(self, env_id: str) -> TaskConfig:
         """The task named `env_id`, or SuiteError listing the suite's tasks."""
         for task in self.tasks:
@@ -316,7 +347,9 @@ class Suite(_Strict):
 
     def sha256(self) -> str:
         """Hash of the suite's canonical JSON form: names exactly what was evaluated."""
-        content = self.model_dump(mode="json", exclude={"shards", "title", "policy", *RECORDING})
+        content = self.model_dump(
+            mode="json", exclude={"shards", "title", "policy", "verification", *RECORDING}
+        )
         for phase in content["phases"].values():
             for name in RULES:
                 del phase[name]
@@ -324,6 +357,7 @@ class Suite(_Strict):
             if getattr(self, name) == type(self).model_fields[name].default:
                 del content[name]
         for task in content["tasks"]:
+            del task["verification"]
             for name in _TASK_HASHED_WHEN_SET:
                 if task[name] == TaskConfig.model_fields[name].default:
                     del task[name]
@@ -351,11 +385,17 @@ def is_module_name(name: str) -> bool:
     )
 
 
-def load_suite(ref: str | Path) -> Suite:
-    """Load a suite by file path, or by name from the bundled `suites/` directory."""
+def suite_path(ref: str | Path) -> Path:
+    """The file of a suite named by file path, or by name from the bundled `suites/` directory."""
     path = Path(ref)
     if not path.suffix and not path.exists():
         path = SUITES_DIR / f"{ref}.yaml"
+    return path
+
+
+def load_suite(ref: str | Path) -> Suite:
+    """Load a suite by file path, or by name from the bundled `suites/` directory."""
+    path = suite_path(ref)
     try:
         raw = yaml.safe_load(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

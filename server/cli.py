@@ -1,11 +1,13 @@
 """Operator commands of the server: `manieval db upgrade`, `manieval admin create`,
-`manieval challenge load`, `challenge packages`, `challenge teams` and `challenge reevaluate`
+`manieval challenge load`, `challenge verify`, `challenge packages`, `challenge teams` and
+`challenge reevaluate`
 (`manieval serve` and `demo` compose
 it with the worker: `manieval/serve.py`)."""
 
 from __future__ import annotations
 
 import getpass
+import sys
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -16,6 +18,10 @@ from rich.console import Console
 from sqlalchemy.orm import Session, sessionmaker
 
 from evaluator.suite import Suite, SuiteError
+
+if TYPE_CHECKING:  # the evaluator's simulator is imported when `challenge verify` runs
+    from evaluator.verification import VerificationReport
+    from server.challenges.verification import Verification
 from server.kit.errors import AppError
 from server.kit.settings import Settings
 
@@ -137,14 +143,24 @@ def challenge_load(
             show_default=False,
         ),
     ] = None,
+    unverified: Annotated[
+        bool,
+        typer.Option(
+            "--unverified",
+            help="Load it without a passing verification report beside the suite "
+            "(`manieval challenge verify`); its page says so.",
+        ),
+    ] = False,
 ) -> None:
-    """Create a challenge from a suite, or update the challenge of that name."""
+    """Create a challenge from a suite, or update the challenge of that name. The suite must
+    have passed `manieval challenge verify` unless told `--unverified`."""
     from server.challenges.service import (
         ChallengeOptions,
         load_challenge,
         policy_refusal,
         suite_of,
     )
+    from server.challenges.verification import Unverified, stored_verification
 
     s = settings()
     options = ChallengeOptions(
@@ -155,6 +171,7 @@ def challenge_load(
         closes=_dates(closes, "--closes"),
         episodes=episodes,
         teams=teams,
+        verified_only=not unverified,
     )
     sessions = migrated_sessions(s)
     try:
@@ -169,10 +186,19 @@ def challenge_load(
             phases = [(p.name, p.seed_commitment, _rules_line(p)) for p in challenge.phases]
             refusal = policy_refusal(challenge, policy_gpus=s.policy_gpus)
             loaded = suite_of(challenge)
+            verification = stored_verification(challenge.verification)
+    except Unverified as exc:
+        console.print(f"[red]error:[/] {exc.message}", highlight=False)
+        console.print(
+            f"verify it first (`manieval challenge verify {suite} --reference POLICY`), "
+            "or load it with --unverified"
+        )
+        raise typer.Exit(1) from None
     except (SuiteError, AppError) as exc:
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(1) from None
     console.print(f"challenge {slug} loaded{' (teams)' if teams else ''}")
+    _print_verification(slug, verification)
     _print_packages(loaded)
     for name, commitment, rules in phases:
         console.print(f"  phase {name}: seed commitment {commitment}; {rules}")
@@ -198,6 +224,23 @@ def _rules_line(phase: Phase) -> str:
     )
     words.append("board hidden until published" if phase.board == "hidden" else "board public")
     return ", ".join(words)
+
+
+def _print_verification(slug: str, verification: Verification | None) -> None:
+    """What the challenge's page will say of its verification."""
+    if verification is None:
+        return
+    report = verification.report
+    if verification.passed and report is not None:
+        console.print(
+            f"  verified by {report.reference}: {report.tasks[0].episodes} episodes a task on "
+            f"the {report.phase} seeds, {report.created_at:%Y-%m-%d}",
+            highlight=False,
+        )
+        return
+    console.print(f"[yellow]warning:[/] {slug} is unverified (its page says so):")
+    for problem in verification.problems:
+        console.print(f"  {problem}", highlight=False)
 
 
 def _print_packages(suite: Suite) -> None:
@@ -231,6 +274,68 @@ def challenge_packages(
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(1) from None
     print(f"package_versions: {json.dumps(pinned.package_versions)}")
+
+
+@challenge_app.command("verify")
+def challenge_verify(
+    suite: Annotated[str, typer.Argument(help="Suite file, or the name of a bundled suite.")],
+    reference: Annotated[
+        str,
+        typer.Option(
+            help="The organizer's reference solution: a policy directory holding policy.py, "
+            "or a bundled policy's name (scripted)."
+        ),
+    ],
+    episodes: Annotated[
+        int | None, typer.Option(min=1, help="Episodes per task (default: the suite's).")
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            help="Write the report here [default: beside the suite, "
+            "NAME.verification.json, where `challenge load` looks for it]."
+        ),
+    ] = None,
+) -> None:
+    """Run the reference solution (on 1, then 2 workers) and the random policy on the dev
+    seeds, print each task's success, step headroom and cost, and write the report that
+    `challenge load` asks for (docs/verification.md). Needs no database; exits 1 on failure."""
+    from evaluator import packages
+    from evaluator.suite import load_suite
+    from evaluator.verification import report_path
+    from evaluator.verify import reference_policy, verify
+
+    ref = Path(suite) if Path(suite).exists() else suite
+    try:
+        policy = reference_policy(reference)
+        pinned, _ = packages.pin(load_suite(ref))
+        report = verify(
+            pinned,
+            policy,
+            episodes=episodes,
+            on_run=lambda name, plan: console.print(
+                f"running the {name}: {plan.episode_count()} episodes"
+            ),
+        )
+    except ValueError as exc:  # SuiteError among them
+        console.print(f"[red]error:[/] {exc}", highlight=False)
+        raise typer.Exit(2) from None
+    target = out or report_path(ref)
+    target.write_text(report.model_dump_json(indent=2) + "\n", encoding="utf-8")
+    _print_report(report, target)
+    if not report.passed:
+        raise typer.Exit(1)
+
+
+def _print_report(report: VerificationReport, target: Path) -> None:
+    from server.challenges.verification import report_table
+
+    # Whole rows in a log or a pipe too, where rich would assume 80 columns and cut names.
+    Console(width=None if sys.stdout.isatty() else 140).print(report_table(report))
+    for failure in report.failures:
+        console.print(f"[red]failed:[/] {failure}", highlight=False)
+    verdict = "passed" if report.passed else "FAILED"
+    console.print(f"verification {verdict}; report written to {target}")
 
 
 @challenge_app.command("teams")

@@ -17,8 +17,10 @@ from server.challenges.schemas import (
     PhaseOut,
     QuotaOut,
     TaskOut,
+    VerificationOut,
 )
 from server.challenges.service import get_challenge, suite_of
+from server.challenges.verification import stored_verification
 from server.kit.deps import DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
@@ -92,6 +94,7 @@ def challenge_detail(
         quota_concurrent=challenge.quota_concurrent,
         team_mode=challenge.team_mode,
         my_quota=quota,
+        verification=_verification(challenge),
     )
 
 
@@ -113,3 +116,10 @@ def publish_board(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) 
     service.publish_board(db, slug=slug, phase=phase)
     db.commit()
     return challenge_detail(slug, Caller(user=admin, session=None), db)
+
+
+def _verification(challenge: Challenge) -> VerificationOut | None:
+    found = stored_verification(challenge.verification)
+    if found is None:
+        return None
+    return VerificationOut(passed=found.passed, problems=found.problems, report=found.report)

@@ -7,6 +7,8 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
+from evaluator.verification import VerificationReport
+
 
 class PhaseOut(BaseModel):
     name: str
@@ -57,6 +59,14 @@ class QuotaOut(BaseModel):
     )
 
 
+class VerificationOut(BaseModel):
+    passed: bool = Field(description="The suite's report passed its thresholds when loaded.")
+    problems: list[str] = Field(description="Why it did not (empty: it passed).")
+    report: VerificationReport | None = Field(
+        description="The report of `manieval challenge verify` (docs/verification.md); null: none."
+    )
+
+
 class ChallengeSummary(BaseModel):
     slug: str
     title: str
@@ -75,3 +85,8 @@ class ChallengeOut(ChallengeSummary):
         description="Quotas and leaderboard rows count per team instead of per user.",
     )
     my_quota: QuotaOut | None
+    verification: VerificationOut | None = Field(
+        default=None,
+        description="The suite's verification as loaded; null for a challenge loaded before "
+        "verification was kept.",
+    )

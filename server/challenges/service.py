@@ -17,6 +17,7 @@ from sqlalchemy.orm import selectinload
 from evaluator import packages
 from evaluator.suite import Phase as SuitePhase
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
+from server.challenges.verification import Unverified, suite_verification
 from server.kit.errors import Conflict, Invalid, NotFound
 from server.models import Challenge, Phase, utcnow
 from server.standings.entries import rebuild
@@ -38,6 +39,10 @@ class ChallengeOptions:
     """Only these of the suite's conditions (a try-out, as `episodes`; None: all)."""
     teams: bool | None = None
     """Count quotas and leaderboard rows per team (None: as it is; off for a new challenge)."""
+    verified_only: bool = False
+    """Refuse a suite without a passing verification report beside it (Unverified), as
+    `manieval challenge load` does unless told `--unverified`; either way the report, or its
+    absence, is kept for the challenge's page."""
 
 
 def load_challenge(
@@ -55,6 +60,9 @@ def load_challenge(
     suite, _ = packages.pin(suite)  # TaskPackageError: missing, failing, another version
     if suite.package_versions != stated:
         suite_yaml = with_package_versions(suite_yaml, suite.package_versions)
+    verification = suite_verification(suite_ref, suite)  # of the suite as written, not narrowed
+    if options.verified_only and not verification.passed:
+        raise Unverified(suite.name, verification.problems)
     suite, narrowed = try_out(suite, options)
     if narrowed:
         header = f"# {suite.name} with {', '.join(narrowed)} (a try-out)\n"
@@ -73,6 +81,7 @@ def load_challenge(
     challenge.description = options.description or suite.description
     challenge.suite_yaml = suite_yaml
     challenge.suite_hash = suite.sha256()
+    challenge.verification = verification.stored()
     challenge.quota_per_day = options.quota_per_day
     challenge.quota_concurrent = options.quota_concurrent
     regroup = options.teams is not None and challenge.team_mode != options.teams

@@ -18,6 +18,7 @@ from server.challenges.charts import StepChart, best_over_time, step_chart
 from server.challenges.prose import markdown, markdown_inline
 from server.challenges.quota import quota_use
 from server.challenges.service import get_challenge, shown_phase, suite_of
+from server.challenges.verification import stored_verification
 from server.kit.deps import DBDep
 from server.kit.pages import render
 from server.leaderboard.columns import board_columns
@@ -35,7 +36,8 @@ PhaseName = Annotated[str | None, Query(max_length=32)]
 def challenge_page(
     slug: str, request: Request, who: ViewerDep, db: DBDep, phase: PhaseName = None
 ) -> Response:
-    """Description, tasks, rules, phases, quota, seed commitments, leaderboard and history."""
+    """Description, tasks, rules, phases, quota, seed commitments, leaderboard, history and
+    the suite's verification."""
     challenge = get_challenge(db, slug=slug)
     shown = shown_phase(challenge, name=phase)
     now = utcnow()
@@ -63,6 +65,7 @@ def challenge_page(
         quota=quota,
         board=board,
         chart=None if hidden else request.app.state.score_history.chart(db, shown),
+        verification=stored_verification(challenge.verification),
     )
 
 

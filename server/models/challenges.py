@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Any
 
 from sqlalchemy import Boolean, Float, ForeignKey, Integer, String, Text, UniqueConstraint, false
 from sqlalchemy.orm import Mapped, mapped_column, relationship
@@ -23,6 +24,9 @@ class Challenge(Base):
     quota_concurrent: Mapped[int] = mapped_column(Integer, default=1)
     team_mode: Mapped[bool] = mapped_column(Boolean, default=False)
     """Quotas and leaderboard rows count per team instead of per user (docs/server.md, Teams)."""
+    verification: Mapped[dict[str, Any] | None] = mapped_column(default=None)
+    """The suite's verification as it was loaded: `{"report": ... | null, "problems": [...]}`
+    (server/challenges/verification.py); null for a challenge loaded before it was kept."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 

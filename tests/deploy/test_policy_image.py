@@ -24,10 +24,11 @@ from docker.errors import DockerException
 
 from evaluator.evaluation import evaluate
 from evaluator.plan import build_plan
+from evaluator.results import episode_records
 from evaluator.sources import LocalDirectory
 from evaluator.suite import load_suite
 from tests.deploy.dockerfiles import DOCKER
-from tests.evaluator.conftest import SCRIPTED, episode_records
+from tests.evaluator.conftest import SCRIPTED
 from tests.server.registry_fixture import (
     LocalRegistry,
     fixture_registry,  # noqa: F401 - pytest fixture

@@ -18,8 +18,6 @@ HERE = Path(__file__).parent
 REPO = HERE.parents[1]
 SCRIPTED = REPO / "examples" / "policies" / "scripted"
 RANDOM = REPO / "examples" / "policies" / "random"
-# Fields of an episode's record that measure time: no two runs share them.
-TIMINGS = frozenset({"wall_time_s", "policy_time_s"})
 
 # A deterministic policy whose actions depend on the observation, so any difference in what the
 # policy sees shows up in the episode records.
@@ -58,16 +56,6 @@ def with_limits(plan: EvaluationPlan, **limits: float) -> EvaluationPlan:
 
 def run(plan: EvaluationPlan, policy: Path, *, workers: int = 1) -> EvaluationResult:
     return evaluate(plan, LocalDirectory(policy), workers=workers)
-
-
-def episode_records(result: EvaluationResult) -> list[dict[str, object]]:
-    """Every episode's record except its timings, which no two runs share."""
-    return [
-        {"condition": c.name, "task": t.env_id, **e.model_dump(exclude=set(TIMINGS))}
-        for c in result.conditions
-        for t in c.tasks
-        for e in t.episodes
-    ]
 
 
 @pytest.fixture

@@ -24,7 +24,7 @@ from evaluator.conditions import ConditionRuntime
 from evaluator.episode import chunk_of, run_episode
 from evaluator.job import EvaluationJob, evaluation_job
 from evaluator.plan import EvaluationPlan, build_plan
-from evaluator.results import EpisodeResult
+from evaluator.results import EpisodeResult, episode_records
 from evaluator.suite import (
     ActionChunks,
     ActionDelay,
@@ -40,7 +40,6 @@ from manieval_sdk.wire import recv_message, send_message
 from tests.evaluator.conftest import (
     HERE,
     SCRIPTED,
-    episode_records,
     run,
     tiny_plan,
     tiny_suite,

@@ -10,13 +10,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from evaluator.results import EvaluationResult
+from evaluator.results import EvaluationResult, episode_records
 from manieval_sdk import Policy, TaskSpec
 from tests.evaluator.conftest import (
     REACTIVE_POLICY,
     REPO,
     SCRIPTED,
-    episode_records,
     run,
     tiny_plan,
 )

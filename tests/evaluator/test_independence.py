@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 
 from evaluator.plan import EvaluationPlan, build_plan
-from evaluator.results import EvaluationResult
+from evaluator.results import TIMINGS, EvaluationResult
 from evaluator.suite import load_suite
-from tests.evaluator.conftest import SCRIPTED, TIMINGS, run, tiny_plan
+from tests.evaluator.conftest import SCRIPTED, run, tiny_plan
 
 # `alone` runs 30 episodes one by one, each in fresh processes: minutes on a busy machine.
 pytestmark = [pytest.mark.sim, pytest.mark.long, pytest.mark.timeout(900)]

@@ -20,11 +20,11 @@ from evaluator import evaluation
 from evaluator import pool as pools
 from evaluator.evaluation import evaluate
 from evaluator.pool import EvaluatorCrashed, WarmPool, leased
-from evaluator.results import EpisodeResult
+from evaluator.results import EpisodeResult, episode_records
 from evaluator.runner import RunOptions, make_shards
 from evaluator.sources import LocalDirectory
 
-from .conftest import HERE, RANDOM, REPO, SCRIPTED, episode_records, tiny_plan
+from .conftest import HERE, RANDOM, REPO, SCRIPTED, tiny_plan
 
 
 @dataclass(frozen=True)

@@ -20,9 +20,10 @@ import numpy as np
 import pytest
 import torch
 
+from evaluator.results import episode_records
 from manieval_sdk import Policy, episode_seed, serve
 from manieval_sdk.wire import recv_message, send_message
-from tests.evaluator.conftest import episode_records, run, tiny_plan
+from tests.evaluator.conftest import run, tiny_plan
 
 SPEC = {
     "env_id": "PickCube-v1",

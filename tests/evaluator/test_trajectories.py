@@ -16,7 +16,7 @@ import yaml
 
 from evaluator.evaluation import evaluate
 from evaluator.plan import EvaluationPlan, build_plan
-from evaluator.results import EvaluationResult
+from evaluator.results import EvaluationResult, episode_records
 from evaluator.sources import LocalDirectory
 from evaluator.suite import Suite
 from evaluator.trajectory import (
@@ -28,7 +28,7 @@ from evaluator.trajectory import (
     trajectory_stem,
 )
 from testkit.trajectories import episode_indices, write_part
-from tests.evaluator.conftest import HERE, SCRIPTED, episode_records
+from tests.evaluator.conftest import HERE, SCRIPTED
 
 # PickCube in 20 steps: the scripted policy succeeds on two of these three seeds, so replay
 # has both outcomes to get back; low_freq changes the environment's own arguments.

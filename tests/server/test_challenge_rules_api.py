@@ -109,7 +109,7 @@ def test_organizers_close_and_publish_from_the_command_line(
     monkeypatch.setenv("MANIEVAL_DEV_MODE", "true")
     monkeypatch.setenv("MANIEVAL_DATA_DIR", str(tmp_path))
     runner = CliRunner()
-    r = runner.invoke(app, ["challenge", "load", str(rules_suite(tmp_path))])
+    r = runner.invoke(app, ["challenge", "load", "--unverified", str(rules_suite(tmp_path))])
     assert r.exit_code == 0, r.output
     assert "last counts, final choice, late ones to a post-deadline board" in r.output
     r = runner.invoke(app, ["challenge", "close", "server-tiny", "test"])

@@ -12,11 +12,13 @@ from typer.testing import CliRunner
 
 from evaluator import packages
 from evaluator.suite import load_suite
+from evaluator.verification import report_path
 from manieval.cli import app
 from server.challenges.service import suite_of, with_package_versions
 from server.kit.db import make_engine, session_factory
 from server.models import Challenge, User
 from testkit.factories import PASSWORD, SUITE, gpu_suite
+from testkit.verification import suite_copy, write_report
 
 runner = CliRunner()
 PACKAGED_SUITE = Path(__file__).resolve().parents[1] / "data" / "task_packages" / "suite.yaml"
@@ -54,12 +56,31 @@ def test_admin_create_and_promote(env: Path) -> None:
 def test_challenge_load_creates_then_updates(env: Path) -> None:
     r = runner.invoke(
         app,
-        ["challenge", "load", str(SUITE), "--quota-per-day", "3", "--closes", "test=2030-01-01"],
+        [
+            "challenge",
+            "load",
+            "--unverified",
+            str(SUITE),
+            "--quota-per-day",
+            "3",
+            "--closes",
+            "test=2030-01-01",
+        ],
     )
     assert r.exit_code == 0, r.output
     assert "seed commitment" in r.output
     r = runner.invoke(
-        app, ["challenge", "load", str(SUITE), "--quota-per-day", "7", "--episodes", "4"]
+        app,
+        [
+            "challenge",
+            "load",
+            "--unverified",
+            str(SUITE),
+            "--quota-per-day",
+            "7",
+            "--episodes",
+            "4",
+        ],
     )
     assert r.exit_code == 0, r.output
     with db_session(env) as db:
@@ -76,22 +97,25 @@ def test_challenge_load_warns_when_this_service_cannot_give_its_policies_gpus(
     env: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     suite = str(gpu_suite(env))
-    r = runner.invoke(app, ["challenge", "load", suite])
+    r = runner.invoke(app, ["challenge", "load", "--unverified", suite])
     assert r.exit_code == 0, r.output  # loaded all the same: the GPUs may come later
     assert "warning: server-gpu refuses submissions until this service has the GPUs" in r.output
     assert "MANIEVAL_POLICY_GPUS" in r.output
     monkeypatch.setenv("MANIEVAL_POLICY_GPUS", "1")
-    r = runner.invoke(app, ["challenge", "load", suite])
+    r = runner.invoke(app, ["challenge", "load", "--unverified", suite])
     assert r.exit_code == 0, r.output
-    assert "warning" not in r.output
+    assert "refuses submissions" not in r.output
 
 
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["challenge", "load", "no-such-suite"], "no suite file"),
-        (["challenge", "load", str(SUITE), "--closes", "final=2030-01-01"], "no phase"),
-        (["challenge", "load", str(SUITE), "--opens", "dev"], "PHASE=ISO-DATE"),
+        (["challenge", "load", "--unverified", "no-such-suite"], "no suite file"),
+        (
+            ["challenge", "load", "--unverified", str(SUITE), "--closes", "final=2030-01-01"],
+            "no phase",
+        ),
+        (["challenge", "load", "--unverified", str(SUITE), "--opens", "dev"], "PHASE=ISO-DATE"),
     ],
 )
 def test_challenge_load_errors(env: Path, args: list[str], message: str) -> None:
@@ -106,7 +130,7 @@ def test_challenge_load_says_which_task_package_is_missing_and_how_to_install_it
     # Another name than the test package's: an earlier test of this process may have imported it.
     suite = env / "missing.yaml"
     suite.write_text(PACKAGED_SUITE.read_text().replace("manieval_test_tasks", "lab_tasks_nowhere"))
-    r = runner.invoke(app, ["challenge", "load", str(suite)])
+    r = runner.invoke(app, ["challenge", "load", "--unverified", str(suite)])
     assert r.exit_code == 1
     assert "task package 'lab_tasks_nowhere' is not installed" in r.output
     assert "-m pip install" in r.output
@@ -116,13 +140,13 @@ def test_a_control_plane_without_maniskill_loads_a_suite_that_states_its_version
     env: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(packages, "simulator_installed", lambda: False)
-    r = runner.invoke(app, ["challenge", "load", str(PACKAGED_SUITE)])
+    r = runner.invoke(app, ["challenge", "load", "--unverified", str(PACKAGED_SUITE)])
     assert r.exit_code == 1
     assert "manieval challenge packages SUITE" in r.output
     stated = env / "stated.yaml"
     text = PACKAGED_SUITE.read_text() + 'package_versions: {manieval_test_tasks: "0.1.0"}\n'
     stated.write_text(text)
-    r = runner.invoke(app, ["challenge", "load", str(stated)])
+    r = runner.invoke(app, ["challenge", "load", "--unverified", str(stated)])
     assert r.exit_code == 0, r.output
     assert "package manieval_test_tasks 0.1.0" in r.output
     with db_session(env) as db:
@@ -140,7 +164,7 @@ def test_challenge_load_pins_task_packages_and_names_each_tasks_provider(
     r = runner.invoke(app, ["challenge", "packages", str(PACKAGED_SUITE)])
     assert r.exit_code == 0, r.output
     assert f'package_versions: {{"manieval_test_tasks": "{version}"}}' in r.stdout
-    r = runner.invoke(app, ["challenge", "load", str(PACKAGED_SUITE)])
+    r = runner.invoke(app, ["challenge", "load", "--unverified", str(PACKAGED_SUITE)])
     assert r.exit_code == 0, r.output
     assert f"package manieval_test_tasks {version}" in r.output
     assert "task KeepCubeInRing-v1: manieval_test_tasks" in r.output
@@ -172,7 +196,7 @@ def loaded_with_an_entry(env: Path) -> int:
     from testkit.factories import make_user
     from tests.web.helpers import finished
 
-    assert runner.invoke(app, ["challenge", "load", str(SUITE)]).exit_code == 0
+    assert runner.invoke(app, ["challenge", "load", "--unverified", str(SUITE)]).exit_code == 0
     with db_session(env) as db:
         challenge = db.scalar(select(Challenge).options(selectinload(Challenge.phases)))
         assert challenge is not None
@@ -218,7 +242,75 @@ def test_challenge_reevaluate_of_every_phase_skips_those_without_entries(env: Pa
     ],
 )
 def test_challenge_reevaluate_errors(env: Path, args: list[str], code: int, message: str) -> None:
-    assert runner.invoke(app, ["challenge", "load", str(SUITE)]).exit_code == 0
+    assert runner.invoke(app, ["challenge", "load", "--unverified", str(SUITE)]).exit_code == 0
     r = runner.invoke(app, args)
     assert r.exit_code == code, r.output
+    assert message in r.output
+
+
+def test_challenge_load_refuses_an_unverified_suite_unless_told_unverified(env: Path) -> None:
+    r = runner.invoke(app, ["challenge", "load", str(SUITE)])
+    assert r.exit_code == 1, r.output
+    assert "suite 'server-tiny' is not verified" in r.output
+    assert f"no verification report at {report_path(SUITE)}" in r.output
+    assert "or load it with --unverified" in r.output
+    with db_session(env) as db:
+        assert db.scalar(select(Challenge)) is None
+    r = runner.invoke(app, ["challenge", "load", "--unverified", str(SUITE)])
+    assert r.exit_code == 0, r.output
+    assert "warning: server-tiny is unverified" in r.output
+    with db_session(env) as db:
+        challenge = db.scalar(select(Challenge))
+        assert challenge is not None
+        assert challenge.verification is not None
+        assert challenge.verification["report"] is None
+        assert challenge.verification["problems"][0].startswith("no verification report")
+
+
+def test_challenge_load_takes_a_verified_suite_and_keeps_its_report(env: Path) -> None:
+    suite = suite_copy(env, SUITE)
+    write_report(suite)
+    r = runner.invoke(app, ["challenge", "load", str(suite)])
+    assert r.exit_code == 0, r.output
+    assert "unverified" not in r.output
+    assert "verified by local:scripted: 10 episodes a task on the dev seeds, 2026-11-27" in r.output
+    with db_session(env) as db:
+        challenge = db.scalar(select(Challenge))
+        assert challenge is not None
+        assert challenge.verification is not None
+        assert challenge.verification["problems"] == []
+        assert challenge.verification["report"]["suite"]["sha256"] == challenge.suite_hash
+
+
+def test_challenge_load_refuses_a_failed_report_naming_the_task(env: Path) -> None:
+    suite = suite_copy(env, SUITE)
+    write_report(suite, reference_successes=0)
+    r = runner.invoke(app, ["challenge", "load", str(suite)])
+    assert r.exit_code == 1, r.output
+    assert "PickCube-v1: the reference solved 0 of 10 episodes (0%)" in r.output
+
+
+def test_a_suite_changed_after_its_verification_must_be_verified_again(env: Path) -> None:
+    suite = suite_copy(env, SUITE)
+    write_report(suite)
+    suite.write_text(suite.read_text().replace("budget_s: 300", "budget_s: 400"))
+    r = runner.invoke(app, ["challenge", "load", str(suite)])
+    assert r.exit_code == 1, r.output
+    assert "is of another suite" in r.output
+    # How it is checked is no part of what it names: new thresholds need no new report.
+    suite.write_text(SUITE.read_text() + "verification: {reference_min_success: 0.8}\n")
+    assert runner.invoke(app, ["challenge", "load", str(suite)]).exit_code == 0
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["maniskill-core", "--reference", "nope"], "no bundled policy of that name (bundled: "),
+        (["no-such-suite", "--reference", "scripted"], "no suite file"),
+        (["maniskill-core"], "Missing option '--reference'"),
+    ],
+)
+def test_challenge_verify_errors(args: list[str], message: str) -> None:
+    r = runner.invoke(app, ["challenge", "verify", *args])
+    assert r.exit_code == 2, r.output
     assert message in r.output

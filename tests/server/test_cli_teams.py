@@ -32,14 +32,14 @@ def _team_mode(data: Path) -> bool:
 
 
 def test_team_mode_is_set_on_load_kept_on_reload_and_switched(env: Path) -> None:
-    r = runner.invoke(app, ["challenge", "load", str(SUITE)])
+    r = runner.invoke(app, ["challenge", "load", "--unverified", str(SUITE)])
     assert r.exit_code == 0, r.output
     assert _team_mode(env) is False
-    r = runner.invoke(app, ["challenge", "load", str(SUITE), "--teams"])
+    r = runner.invoke(app, ["challenge", "load", "--unverified", str(SUITE), "--teams"])
     assert r.exit_code == 0, r.output
     assert "(teams)" in r.output
     assert _team_mode(env) is True
-    runner.invoke(app, ["challenge", "load", str(SUITE)])
+    runner.invoke(app, ["challenge", "load", "--unverified", str(SUITE)])
     assert _team_mode(env) is True  # not named: kept
     r = runner.invoke(app, ["challenge", "teams", "server-tiny", "off"])
     assert r.exit_code == 0, r.output
@@ -48,7 +48,7 @@ def test_team_mode_is_set_on_load_kept_on_reload_and_switched(env: Path) -> None
 
 
 def test_challenge_teams_refuses_unknown_challenges_and_modes(env: Path) -> None:
-    runner.invoke(app, ["challenge", "load", str(SUITE)])
+    runner.invoke(app, ["challenge", "load", "--unverified", str(SUITE)])
     r = runner.invoke(app, ["challenge", "teams", "server-tiny", "maybe"])
     assert r.exit_code == 2
     r = runner.invoke(app, ["challenge", "teams", "nope", "on"])

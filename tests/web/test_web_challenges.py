@@ -4,17 +4,19 @@ from __future__ import annotations
 
 import re
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
-from server.challenges.service import load_challenge
+from server.challenges.service import ChallengeOptions, load_challenge
 from server.leaderboard.challenge_page import ScoreHistory
 from server.leaderboard.service import record_points
 from server.models import Challenge, Phase
 from server.standings.entries import refresh
 from server.teams.service import create_team
-from testkit.factories import make_challenge, make_user
+from testkit.factories import SUITE, make_challenge, make_user
+from testkit.verification import suite_copy, write_report
 from tests.web.helpers import browser, finished
 
 
@@ -153,3 +155,36 @@ def test_a_team_mode_challenge_says_it_counts_per_team_and_whose_quota_is_shown(
     html = browser(client, "alice").get("/challenges/server-tiny").text
     assert "This challenge counts per team: a team's members share the quota above" in html
     assert "Your team's quota (grasp-lab): 0 of 3 used" in html
+
+
+def test_challenge_page_and_api_show_the_verification_report(
+    client: TestClient, db: Session, tmp_path: Path
+) -> None:
+    suite = suite_copy(tmp_path, SUITE)
+    write_report(suite)
+    load_challenge(db, suite, ChallengeOptions(verified_only=True), seed_secret="s" * 32)
+    db.commit()
+    html = client.get("/challenges/server-tiny").text
+    section = html.split('id="verification-heading"')[1].split("</section>")[0]
+    assert '<span class="badge badge-open">verified</span>' in section
+    assert "local:scripted" in section
+    assert '<th scope="row">PickCube-v1</th>' in section
+    assert "9 of 10 (at least 50%)" in section
+    assert "0 of 10 (under 20%)" in section
+    assert "identical" in section
+    api = client.get("/api/v1/challenges/server-tiny").json()["verification"]
+    assert api["passed"] is True
+    assert api["problems"] == []
+    assert api["report"]["tasks"][0]["reference_successes"] == 9
+
+
+def test_challenge_page_says_a_challenge_loaded_unverified_is_not_verified(
+    client: TestClient, db: Session, tiny: Challenge
+) -> None:
+    html = client.get("/challenges/server-tiny").text
+    section = html.split('id="verification-heading"')[1].split("</section>")[0]
+    assert "not verified" in section
+    assert "no verification report at" in section
+    api = client.get("/api/v1/challenges/server-tiny").json()["verification"]
+    assert api["passed"] is False
+    assert api["report"] is None

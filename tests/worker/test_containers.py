@@ -22,10 +22,10 @@ from docker.types import DeviceRequest, Mount
 from evaluator.endpoint import PolicyEndpoint
 from evaluator.evaluation import evaluate
 from evaluator.plan import EvaluationPlan, build_plan
-from evaluator.results import EvaluationResult
+from evaluator.results import EvaluationResult, episode_records
 from evaluator.sources import LocalDirectory
 from evaluator.suite import load_suite
-from tests.evaluator.conftest import SCRIPTED, episode_records, tiny_plan, with_limits
+from tests.evaluator.conftest import SCRIPTED, tiny_plan, with_limits
 from tests.server.registry_fixture import fixture_registry  # noqa: F401 - pytest fixture
 from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
     ContainerEngine,

@@ -36,14 +36,14 @@ from evaluator.job import (
     write_document,
 )
 from evaluator.plan import build_plan
-from evaluator.results import Abort, EpisodeResult, EvaluationResult
+from evaluator.results import Abort, EpisodeResult, EvaluationResult, episode_records
 from evaluator.runner import ShardOutcome
 from evaluator.sources import LocalDirectory
 from evaluator.suite import Suite, SuiteError
 from testkit.k8s_double import (
     POLICY_IMAGE,
 )
-from tests.evaluator.conftest import REPO, SCRIPTED, episode_records, tiny_suite
+from tests.evaluator.conftest import REPO, SCRIPTED, tiny_suite
 from tests.worker.k8s_specs import (
     TINY_SUITE,
     tiny_evaluation,

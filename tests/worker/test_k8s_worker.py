@@ -27,7 +27,7 @@ from sqlalchemy.orm import Session, joinedload, sessionmaker
 from evaluator.evaluation import build_result, evaluate
 from evaluator.job import JOB_SPEC_FILE_ENV, evaluation_job, write_document
 from evaluator.plan import EvaluationPlan, build_plan
-from evaluator.results import Abort, EvaluationResult
+from evaluator.results import Abort, EvaluationResult, episode_records
 from evaluator.runner import ShardOutcome
 from evaluator.sources import LocalDirectory
 from evaluator.suite import SUITES_DIR
@@ -46,7 +46,7 @@ from testkit.k8s_double import (
 )
 from testkit.waiting import until
 from testkit.workers import worker_settings
-from tests.evaluator.conftest import REPO, SCRIPTED, episode_records
+from tests.evaluator.conftest import REPO, SCRIPTED
 from tests.worker.k8s_specs import (
     make_spec,
 )

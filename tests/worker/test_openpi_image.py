@@ -14,10 +14,9 @@ import pytest
 
 from evaluator.evaluation import evaluate
 from evaluator.plan import EvaluationPlan, build_plan
-from evaluator.results import EvaluationResult
+from evaluator.results import EvaluationResult, episode_records
 from evaluator.sources import LocalDirectory
 from evaluator.suite import ActionChunks
-from tests.evaluator.conftest import episode_records
 from tests.server.registry_fixture import fixture_registry  # noqa: F401 - pytest fixture
 from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
     ContainerEngine,
