@@ -137,6 +137,21 @@ def challenge_load(
             show_default=False,
         ),
     ] = None,
+    track: Annotated[
+        str | None, typer.Option(help="Its name as a track of its group (default: its own).")
+    ] = None,
+    track_of: Annotated[
+        str | None, typer.Option(help="Make it a track of this challenge (the group's head).")
+    ] = None,
+    shared_quota: Annotated[
+        bool | None,
+        typer.Option(
+            "--shared-quota/--quota-per-track",
+            help="The group's tracks draw on one quota, the head's (default: as it is; per "
+            "track at first).",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Create a challenge from a suite, or update the challenge of that name."""
     from server.challenges.service import (
@@ -145,6 +160,7 @@ def challenge_load(
         policy_refusal,
         suite_of,
     )
+    from server.challenges.tracks import head_of, track_name, tracks_of
 
     s = settings()
     options = ChallengeOptions(
@@ -155,6 +171,9 @@ def challenge_load(
         closes=_dates(closes, "--closes"),
         episodes=episodes,
         teams=teams,
+        track=track,
+        track_of=track_of,
+        quota_shared=shared_quota,
     )
     sessions = migrated_sessions(s)
     try:
@@ -169,6 +188,8 @@ def challenge_load(
             phases = [(p.name, p.seed_commitment, _rules_line(p)) for p in challenge.phases]
             refusal = policy_refusal(challenge, policy_gpus=s.policy_gpus)
             loaded = suite_of(challenge)
+            group = [f"{track_name(t)} ({t.slug})" for t in tracks_of(db, challenge)]
+            shared = head_of(db, challenge).quota_shared
     except (SuiteError, AppError) as exc:
         console.print(f"[red]error:[/] {exc}")
         raise typer.Exit(1) from None
@@ -176,6 +197,9 @@ def challenge_load(
     _print_packages(loaded)
     for name, commitment, rules in phases:
         console.print(f"  phase {name}: seed commitment {commitment}; {rules}")
+    if len(group) > 1:
+        quota = "one quota shared" if shared else "a quota per track"
+        console.print(f"  tracks: {', '.join(group)}; {quota}", highlight=False)
     if refusal is not None:
         # Loaded all the same: the GPUs may come later; until then submissions are refused.
         console.print(

@@ -17,8 +17,10 @@ from server.challenges.schemas import (
     PhaseOut,
     QuotaOut,
     TaskOut,
+    TrackOut,
 )
 from server.challenges.service import get_challenge, suite_of
+from server.challenges.tracks import head_of, track_name, tracks_of
 from server.kit.deps import DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
@@ -67,6 +69,7 @@ def challenge_detail(
 ) -> ChallengeOut:
     challenge = get_challenge(db, slug=slug)
     suite = suite_of(challenge)
+    group = tracks_of(db, challenge)
     quota = None
     if who.user is not None:
         use = quota_use(db, user=who.user, challenge=challenge, now=utcnow())
@@ -92,6 +95,9 @@ def challenge_detail(
         quota_concurrent=challenge.quota_concurrent,
         team_mode=challenge.team_mode,
         my_quota=quota,
+        track=track_name(challenge),
+        tracks=[TrackOut(name=track_name(t), slug=t.slug, title=t.title) for t in group],
+        quota_shared=head_of(db, challenge).quota_shared,
     )
 
 

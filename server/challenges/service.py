@@ -17,6 +17,7 @@ from sqlalchemy.orm import selectinload
 from evaluator import packages
 from evaluator.suite import Phase as SuitePhase
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
+from server.challenges.tracks import join_group
 from server.kit.errors import Conflict, Invalid, NotFound
 from server.models import Challenge, Phase, utcnow
 from server.standings.entries import rebuild
@@ -38,6 +39,12 @@ class ChallengeOptions:
     """Only these of the suite's conditions (a try-out, as `episodes`; None: all)."""
     teams: bool | None = None
     """Count quotas and leaderboard rows per team (None: as it is; off for a new challenge)."""
+    track: str | None = None
+    """The challenge's name within its group of tracks (None: as it is; its slug when unset)."""
+    track_of: str | None = None
+    """Make the challenge a track of this one, the group's head (None: as it is)."""
+    quota_shared: bool | None = None
+    """Whether the group's tracks share the head's quota (None: as it is; off at first)."""
 
 
 def load_challenge(
@@ -102,6 +109,13 @@ def load_challenge(
     for gone in existing.values():  # phases dropped from the suite
         challenge.phases.remove(gone)
     db.flush()
+    join_group(
+        db,
+        challenge,
+        track=options.track,
+        track_of=options.track_of,
+        quota_shared=options.quota_shared,
+    )
     if regroup:
         rebuild(db, challenge_id=challenge.id)
     return challenge
