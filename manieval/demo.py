@@ -1,7 +1,8 @@
 """`manieval demo`: the whole service on one machine, with filled leaderboards.
 
 It starts the embedded server (SQLite, in-process worker), loads the two tracks' challenges (the
-core suite on state observations, the visual suite on cameras) with short episode counts,
+core suite on state observations, the visual suite on cameras; the visual challenge a track of
+the core one, so the core challenge's page shows both boards) with short episode counts,
 creates the `demo` account, and submits the bundled example policies through the public API,
 exactly like any participant; then it follows them live and keeps serving until interrupted. A
 second run reuses the same data and skips finished work.
@@ -40,6 +41,10 @@ class Track:
 
     challenge: str
     policies: tuple[str, ...]
+    name: str = ""
+    """Its name among the demo's tracks (docs/server.md, Tracks)."""
+    track_of: str | None = None
+    """The challenge heading the demo's tracks (None: this one heads them)."""
     tasks: tuple[str, ...] | None = None
     conditions: tuple[str, ...] | None = None
     episodes: int | None = None
@@ -48,12 +53,14 @@ class Track:
     """Said on the challenge's page, after the suite's description."""
 
 
-CORE = Track(challenge="maniskill-core", policies=("scripted", "random"))
+CORE = Track(challenge="maniskill-core", policies=("scripted", "random"), name="state")
 # Camera frames cost tens of milliseconds each on a CPU: the visual track runs small, so that
 # the demo's first leaderboards still come within 90 s on 2 cores (docs/capacity.md).
 VISUAL = Track(
     challenge="maniskill-visual",
     policies=("scripted",),
+    name="visual",
+    track_of=CORE.challenge,
     tasks=("PickCube-v1", "PushCube-v1"),
     conditions=("nominal",),
     episodes=1,
@@ -143,6 +150,8 @@ def challenge_options(track: Track, episodes: int) -> ChallengeOptions:
         episodes=track.episodes or episodes,
         tasks=track.tasks,
         conditions=track.conditions,
+        track=track.name or None,
+        track_of=track.track_of,
     )
 
 

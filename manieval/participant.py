@@ -104,6 +104,10 @@ def submit(
     image: Annotated[str, typer.Argument(help="Image reference: registry/repo:tag or @sha256:...")],
     challenge: Annotated[str, typer.Option("--challenge", "-c", help="The challenge's name.")],
     phase: Annotated[str, typer.Option(help="The phase.")] = "dev",
+    track: Annotated[
+        str | None,
+        typer.Option(help="The challenge's track, by name (state, visual) or challenge name."),
+    ] = None,
     description: Annotated[str, typer.Option(help="A note shown with the submission.")] = "",
     method: MethodOption = None,
     paper_url: PaperOption = None,
@@ -126,6 +130,7 @@ def submit(
             description=description,
             public=not private,
             method=MethodInfo(method, paper_url, code_url),
+            track=track,
         )
         err = render.stderr()
         err.print(f"submission {s['id']} accepted: {s['pinned_image']}")

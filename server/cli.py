@@ -151,6 +151,21 @@ def challenge_load(
             "(`manieval challenge verify`); its page says so.",
         ),
     ] = False,
+    track: Annotated[
+        str | None, typer.Option(help="Its name as a track of its group (default: its own).")
+    ] = None,
+    track_of: Annotated[
+        str | None, typer.Option(help="Make it a track of this challenge (the group's head).")
+    ] = None,
+    shared_quota: Annotated[
+        bool | None,
+        typer.Option(
+            "--shared-quota/--quota-per-track",
+            help="The group's tracks draw on one quota, the head's (default: as it is; per "
+            "track at first).",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Create a challenge from a suite, or update the challenge of that name. The suite must
     have passed `manieval challenge verify` unless told `--unverified`."""
@@ -160,6 +175,7 @@ def challenge_load(
         policy_refusal,
         suite_of,
     )
+    from server.challenges.tracks import head_of, track_name, tracks_of
     from server.challenges.verification import Unverified, stored_verification
 
     s = settings()
@@ -172,6 +188,9 @@ def challenge_load(
         episodes=episodes,
         teams=teams,
         verified_only=not unverified,
+        track=track,
+        track_of=track_of,
+        quota_shared=shared_quota,
     )
     sessions = migrated_sessions(s)
     try:
@@ -187,6 +206,8 @@ def challenge_load(
             refusal = policy_refusal(challenge, policy_gpus=s.policy_gpus)
             loaded = suite_of(challenge)
             verification = stored_verification(challenge.verification)
+            group = [f"{track_name(t)} ({t.slug})" for t in tracks_of(db, challenge)]
+            shared = head_of(db, challenge).quota_shared
     except Unverified as exc:
         console.print(f"[red]error:[/] {exc.message}", highlight=False)
         console.print(
@@ -202,6 +223,9 @@ def challenge_load(
     _print_packages(loaded)
     for name, commitment, rules in phases:
         console.print(f"  phase {name}: seed commitment {commitment}; {rules}")
+    if len(group) > 1:
+        quota = "one quota shared" if shared else "a quota per track"
+        console.print(f"  tracks: {', '.join(group)}; {quota}", highlight=False)
     if refusal is not None:
         # Loaded all the same: the GPUs may come later; until then submissions are refused.
         console.print(

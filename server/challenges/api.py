@@ -17,9 +17,11 @@ from server.challenges.schemas import (
     PhaseOut,
     QuotaOut,
     TaskOut,
+    TrackOut,
     VerificationOut,
 )
 from server.challenges.service import get_challenge, suite_of
+from server.challenges.tracks import head_of, track_name, tracks_of
 from server.challenges.verification import stored_verification
 from server.kit.deps import DBDep, PageNo, PerPage
 from server.kit.errors import ERROR_RESPONSES
@@ -69,6 +71,7 @@ def challenge_detail(
 ) -> ChallengeOut:
     challenge = get_challenge(db, slug=slug)
     suite = suite_of(challenge)
+    group = tracks_of(db, challenge)
     quota = None
     if who.user is not None:
         use = quota_use(db, user=who.user, challenge=challenge, now=utcnow())
@@ -95,6 +98,9 @@ def challenge_detail(
         team_mode=challenge.team_mode,
         my_quota=quota,
         verification=_verification(challenge),
+        track=track_name(challenge),
+        tracks=[TrackOut(name=track_name(t), slug=t.slug, title=t.title) for t in group],
+        quota_shared=head_of(db, challenge).quota_shared,
     )
 
 

@@ -10,6 +10,7 @@ from datetime import datetime, timedelta
 from sqlalchemy import ColumnElement, func, or_, select
 from sqlalchemy.orm import Session as DB
 
+from server.challenges.tracks import quota_group
 from server.kit.errors import QuotaExceeded
 from server.models import (
     ACTIVE_STATES,
@@ -41,6 +42,10 @@ class QuotaUse:
     resets_at: datetime | None
     team: str | None = None
     """The team whose members share this quota (team mode), or None: the user's own."""
+    shared_by: int = 1
+    """How many tracks' submissions count against it (docs/server.md, Tracks)."""
+    quota_of: str = ""
+    """The challenge whose quota it is: the group's head when its tracks share one."""
 
 
 def _team(db: DB, *, user: User, challenge: Challenge) -> Team | None:
@@ -62,9 +67,10 @@ def _counted(user: User, team: Team | None) -> ColumnElement[bool]:
 def quota_use(db: DB, *, user: User, challenge: Challenge, now: datetime) -> QuotaUse:
     """How much of the challenge's daily and concurrent quota the user (or their team) holds."""
     team = _team(db, user=user, challenge=challenge)
+    limits, challenge_ids = quota_group(db, challenge)
     counted = (
         _counted(user, team),
-        Submission.challenge_id == challenge.id,
+        Submission.challenge_id.in_(challenge_ids),
         Submission.reevaluation_of.is_(None),  # an organizer's re-evaluation: nobody's quota
     )
     day = db.scalars(
@@ -77,14 +83,16 @@ def quota_use(db: DB, *, user: User, challenge: Challenge, now: datetime) -> Quo
         .select_from(Submission)
         .where(*counted, Submission.state.in_(ACTIVE_STATES))
     )
-    resets_at = day[0] + DAY if len(day) >= challenge.quota_per_day else None
+    resets_at = day[0] + DAY if len(day) >= limits.quota_per_day else None
     return QuotaUse(
         per_day_used=len(day),
-        per_day_limit=challenge.quota_per_day,
+        per_day_limit=limits.quota_per_day,
         concurrent_used=active or 0,
-        concurrent_limit=challenge.quota_concurrent,
+        concurrent_limit=limits.quota_concurrent,
         resets_at=resets_at,
         team=team.name if team is not None else None,
+        shared_by=len(challenge_ids),
+        quota_of=limits.slug,
     )
 
 
@@ -103,16 +111,21 @@ def check_quota(db: DB, *, user: User, challenge: Challenge, now: datetime) -> i
     if use.resets_at is not None:
         raise QuotaExceeded(
             f"{'' if use.team is None else whose + ' '}daily quota of {use.per_day_limit} "
-            f"submissions to {challenge.slug!r} used; the next one is possible at "
+            f"submissions to {_whose_quota(use)} used; the next one is possible at "
             f"{use.resets_at:%Y-%m-%d %H:%M:%S} UTC",
             retry_after=(use.resets_at - now).total_seconds(),
             resets_at=use.resets_at.isoformat(),
         )
     if use.concurrent_used >= use.concurrent_limit:
         raise QuotaExceeded(
-            f"{use.concurrent_used} of {whose} submissions to {challenge.slug!r} are still "
+            f"{use.concurrent_used} of {whose} submissions to {_whose_quota(use)} are still "
             f"queued or running (limit {use.concurrent_limit}); wait for one to finish",
             retry_after=60,
             resets_at=None,
         )
     return team_id
+
+
+def _whose_quota(use: QuotaUse) -> str:
+    tracks = f" and its tracks (one quota for {use.shared_by})" if use.shared_by > 1 else ""
+    return f"{use.quota_of!r}{tracks}"

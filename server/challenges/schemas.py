@@ -57,6 +57,18 @@ class QuotaOut(BaseModel):
     team: str | None = Field(
         default=None, description="The team whose members share this quota (team mode)."
     )
+    shared_by: int = Field(
+        default=1, description="How many tracks' submissions count against this quota."
+    )
+    quota_of: str = Field(
+        default="", description="The challenge whose quota it is (a group's head when shared)."
+    )
+
+
+class TrackOut(BaseModel):
+    name: str = Field(description="The track's name within its group")
+    slug: str = Field(description="The track's challenge: its boards, submissions and phases")
+    title: str
 
 
 class VerificationOut(BaseModel):
@@ -89,4 +101,12 @@ class ChallengeOut(ChallengeSummary):
         default=None,
         description="The suite's verification as loaded; null for a challenge loaded before "
         "verification was kept.",
+    )
+    track: str = Field(default="", description="This challenge's name within its group")
+    tracks: list[TrackOut] = Field(
+        default_factory=list,
+        description="Its group's tracks, the head first (just itself when it has none)",
+    )
+    quota_shared: bool = Field(
+        default=False, description="The group's tracks draw on one quota, the head's"
     )

@@ -17,6 +17,7 @@ from sqlalchemy.orm import selectinload
 from evaluator import packages
 from evaluator.suite import Phase as SuitePhase
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
+from server.challenges.tracks import join_group
 from server.challenges.verification import Unverified, suite_verification
 from server.kit.errors import Conflict, Invalid, NotFound
 from server.models import Challenge, Phase, utcnow
@@ -43,6 +44,12 @@ class ChallengeOptions:
     """Refuse a suite without a passing verification report beside it (Unverified), as
     `manieval challenge load` does unless told `--unverified`; either way the report, or its
     absence, is kept for the challenge's page."""
+    track: str | None = None
+    """The challenge's name within its group of tracks (None: as it is; its slug when unset)."""
+    track_of: str | None = None
+    """Make the challenge a track of this one, the group's head (None: as it is)."""
+    quota_shared: bool | None = None
+    """Whether the group's tracks share the head's quota (None: as it is; off at first)."""
 
 
 def load_challenge(
@@ -111,6 +118,13 @@ def load_challenge(
     for gone in existing.values():  # phases dropped from the suite
         challenge.phases.remove(gone)
     db.flush()
+    join_group(
+        db,
+        challenge,
+        track=options.track,
+        track_of=options.track_of,
+        quota_shared=options.quota_shared,
+    )
     if regroup:
         rebuild(db, challenge_id=challenge.id)
     return challenge

@@ -7,6 +7,7 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
@@ -18,15 +19,57 @@ from server.challenges.charts import StepChart, best_over_time, step_chart
 from server.challenges.prose import markdown, markdown_inline
 from server.challenges.quota import quota_use
 from server.challenges.service import get_challenge, shown_phase, suite_of
+from server.challenges.tracks import track_name, tracks_of
 from server.challenges.verification import stored_verification
 from server.kit.deps import DBDep
 from server.kit.pages import render
-from server.leaderboard.columns import board_columns
+from server.leaderboard.columns import Column, board_columns
 from server.leaderboard.pages import top_rows
-from server.leaderboard.service import baseline_points, record_points
-from server.models import Phase, utcnow
+from server.leaderboard.service import Board, baseline_points, record_points
+from server.models import Challenge, Phase, User, utcnow
 
 router = APIRouter(include_in_schema=False)
+
+
+@dataclass(frozen=True)
+class TrackBoard:
+    """The top of another track's board in the same phase, shown on the challenge's page."""
+
+    name: str
+    challenge: Challenge
+    phase: Phase
+    board: Board
+    tasks: list[str]
+    columns: list[Column]
+
+
+def track_boards(
+    request: Request, db: DB, challenge: Challenge, *, phase: str, viewer: User | None
+) -> list[TrackBoard]:
+    """The top rows of every other track of the challenge's group, each in the phase of the
+    same name (else the phase its page would show): a challenge with tracks shows each board."""
+    shown = []
+    for track in tracks_of(db, challenge):
+        if track.id == challenge.id:
+            continue
+        named = next((p for p in track.phases if p.name == phase), None)
+        track_phase = named or shown_phase(track, name=None)
+        tasks = [t.env_id for t in suite_of(track).tasks]
+        board = top_rows(
+            request, db, slug=track.slug, phase=track_phase.name, count=TOP_ROWS, viewer=viewer
+        )
+        shown.append(
+            TrackBoard(
+                name=track_name(track),
+                challenge=track,
+                phase=track_phase,
+                board=board,
+                tasks=tasks,
+                columns=board_columns(tasks, []),
+            )
+        )
+    return shown
+
 
 TOP_ROWS = 10  # rows of the board shown on the challenge page
 PhaseName = Annotated[str | None, Query(max_length=32)]
@@ -66,6 +109,9 @@ def challenge_page(
         board=board,
         chart=None if hidden else request.app.state.score_history.chart(db, shown),
         verification=stored_verification(challenge.verification),
+        track=track_name(challenge),
+        tracks=tracks_of(db, challenge),
+        track_boards=track_boards(request, db, challenge, phase=shown.name, viewer=who.user),
     )
 
 

@@ -27,6 +27,14 @@ class Challenge(Base):
     verification: Mapped[dict[str, Any] | None] = mapped_column(default=None)
     """The suite's verification as it was loaded: `{"report": ... | null, "problems": [...]}`
     (server/challenges/verification.py); null for a challenge loaded before it was kept."""
+    track_of: Mapped[int | None] = mapped_column(Integer, index=True)
+    """The head of the group of tracks this challenge is a track of; None: it is a head (of
+    its tracks, if any) or alone (docs/server.md, Tracks). No foreign key: SQLite adds one only
+    by rebuilding `challenges` (alembic 0015); a track whose head is gone stands alone."""
+    track: Mapped[str | None] = mapped_column(String(32))
+    """The track's name within its group ("state", "visual"); None: its slug."""
+    quota_shared: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    """On a group's head: its tracks' submissions count against one quota, the head's."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 

@@ -9,6 +9,7 @@ from fastapi import APIRouter, Query, Request
 
 from server.accounts.deps import AdminDep, CallerDep, UserDep
 from server.challenges.service import get_challenge, get_phase
+from server.challenges.tracks import get_track
 from server.kit.deps import DBDep, Id, PageNo, PerPage, limit
 from server.kit.errors import ERROR_RESPONSES
 from server.kit.schemas import SLUG_PATTERN, Page
@@ -78,7 +79,7 @@ def create_submission(body: SubmitIn, request: Request, user: UserDep, db: DBDep
     """Submit an image: its tag is resolved and pinned to a digest now; the evaluation is queued."""
     limit(request, "submit", user=user)
     svc = services(request)
-    challenge = get_challenge(db, slug=body.challenge)
+    challenge = get_track(db, get_challenge(db, slug=body.challenge), body.track)
     submission = submit(
         db,
         user=user,

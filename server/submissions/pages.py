@@ -66,7 +66,7 @@ class Evaluation:
 def evaluations(db: DB, s: Submission, who: Viewer) -> list[Evaluation]:
     """The submission and its evaluations on other board versions that `who` may see, by
     version; empty when it has none."""
-    others = [o for o in reevaluations_of(db, submission=s) if visible_to(o, who.user)]
+    others = [o for o in reevaluations_of(db, submission=s) if visible_to(db, o, who.user)]
     if not others:
         return []
     shown = sorted([s, *others], key=lambda o: (o.board_version, o.id))

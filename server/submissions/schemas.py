@@ -22,6 +22,11 @@ _CODE = "an absolute http(s) link to the method's code"
 
 class SubmitIn(InBody):
     challenge: str = Field(max_length=64)
+    track: str | None = Field(
+        default=None,
+        max_length=64,
+        description="a track of the challenge's group, by name or slug (none: the challenge)",
+    )
     phase: str = Field(default="dev", max_length=32)
     image: str = Field(max_length=512)
     description: str = Field(default="", max_length=2000)

@@ -31,6 +31,7 @@ from server.models import (
     TaskResultRow,
     Transition,
     User,
+    team_id_of,
     utcnow,
 )
 from server.standings.entries import refresh
@@ -172,11 +173,25 @@ def check_open(challenge: Challenge, phase: Phase, *, now: datetime) -> bool:
     )
 
 
-def visible_to(submission: Submission, user: User | None) -> bool:
-    """Whether `user` may see this submission at all (others get 404, not 403)."""
+def visible_to(db: DB, submission: Submission, user: User | None) -> bool:
+    """Whether `user` may see this submission at all (others get 404, not 403): its owner and
+    admins always, anyone a public one, but on a board hidden until published only those who
+    see its row (its team, in team mode): the one rule every route that shows it follows."""
     if user is not None and (user.is_admin or user.id == submission.user_id):
         return True
-    return submission.public and not submission.hidden
+    if not submission.public or submission.hidden:
+        return False
+    phase = db.get(Phase, submission.phase_id)
+    if phase is None or phase.board_shown_to_all():
+        return True
+    challenge = db.get(Challenge, submission.challenge_id)
+    return (
+        user is not None
+        and challenge is not None
+        and challenge.team_mode
+        and submission.team_id is not None
+        and submission.team_id == team_id_of(db, user_id=user.id)
+    )
 
 
 def owned_or_admin(submission: Submission, user: User | None) -> bool:
@@ -187,7 +202,7 @@ def owned_or_admin(submission: Submission, user: User | None) -> bool:
 def find_visible(db: DB, *, submission_id: int, user: User | None) -> Submission | None:
     """The submission, with what it is shown with, if `user` may see it, else None."""
     submission = db.get(Submission, submission_id, options=SHOWN_WITH)
-    if submission is None or not visible_to(submission, user):
+    if submission is None or not visible_to(db, submission, user):
         return None
     return submission
 
@@ -208,7 +223,7 @@ def get_owned(
     user may see is Forbidden instead: it exists, and saying "no submission" would be a lie."""
     submission = db.get(Submission, submission_id, options=SHOWN_WITH)
     if submission is None or not owned_or_admin(submission, user):
-        if part is not None and submission is not None and visible_to(submission, user):
+        if part is not None and submission is not None and visible_to(db, submission, user):
             raise Forbidden(
                 f"submission {submission_id} is public, but its {part} are visible to its "
                 "owner only"

@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session as DB
 from server.accounts.deps import PostedDep, ViewerDep
 from server.challenges.quota import quota_use
 from server.challenges.service import get_challenge, get_phase, policy_refusal
+from server.challenges.tracks import get_track, tracks_of
 from server.downloads.artifacts import TEMPLATE_DIR, TEMPLATE_FILE
 from server.kit.deps import DBDep, limit
 from server.kit.errors import AppError, Forbidden, Invalid
@@ -61,6 +62,7 @@ def _form(
         push=push_commands(request, user=user, challenge=challenge),
         images_refused=images_refused(services(request).resolve),
         gpus_refused=policy_refusal(challenge, policy_gpus=services(request).settings.policy_gpus),
+        tracks=tracks_of(db, challenge),
     )
     if error is not None:
         response.headers.update(error.headers())
@@ -136,7 +138,7 @@ def submit_form(
 ) -> Response:
     signed_in(request, who)
     challenge = get_challenge(db, slug=slug)
-    default = {"phase": phase, "image": "", "description": "", "visibility": "public"}
+    default = {"phase": phase, "image": "", "description": "", "visibility": "public", "track": ""}
     default |= {"method": "", "paper_url": "", "code_url": ""}
     return _form(request, who, db, challenge, form=default)
 
@@ -157,12 +159,14 @@ def submit_post(
     paper_url: FormText = "",
     code_url: FormText = "",
     visibility: FormText = "public",
+    track: FormText = "",
 ) -> Response:
     """Accept the submission and go to its page, or show the server's errors by the fields."""
     user = signed_in(request, who)
     challenge = get_challenge(db, slug=slug)
     image = image.strip()
     form = {"phase": phase, "image": image, "description": description, "visibility": visibility}
+    form["track"] = track
     form |= {"method": method, "paper_url": paper_url, "code_url": code_url}
     svc = services(request)
     try:
@@ -174,11 +178,12 @@ def submit_post(
                 "image reference too long",
                 fields={"image": f"At most {MAX_IMAGE_LENGTH} characters."},
             )
+        chosen = get_track(db, challenge, track or None)
         submission = submit(
             db,
             user=user,
-            challenge=challenge,
-            phase=get_phase(challenge, phase),
+            challenge=chosen,
+            phase=get_phase(chosen, phase),
             image=image,
             description=description,
             public=visibility != "private",

@@ -129,11 +129,13 @@ def test_score_history_keeps_only_records_and_follows_the_board_version(
 def test_the_demos_visual_challenge_page_says_what_it_runs_and_what_a_policy_sees(
     client: TestClient, db: Session
 ) -> None:
-    from manieval.demo import VISUAL, challenge_options
+    from manieval.demo import TRACKS, VISUAL, challenge_options
 
-    load_challenge(db, VISUAL.challenge, challenge_options(VISUAL, 2), seed_secret="s" * 32)
+    for track in TRACKS:  # as the demo loads them: the visual one is a track of the core one
+        load_challenge(db, track.challenge, challenge_options(track, 2), seed_secret="s" * 32)
     db.commit()
     html = client.get(f"/challenges/{VISUAL.challenge}").text
+    assert "Leaderboard, track state, phase dev" in html  # the other track's board
     assert "In this demo</strong> the visual track runs small" in html
     tasks = html.split('id="tasks-heading"')[1].split("</section>")[0]
     assert re.findall(r'<th scope="row">([^<]+)</th>', tasks) == ["PickCube-v1", "PushCube-v1"]
