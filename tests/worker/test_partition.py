@@ -202,7 +202,9 @@ def mid_run(cluster: Cluster, sid: int) -> Host:
         timeout=WAIT_S,
     )
     state = body(cluster, sid)
-    assert state["state"] == "running", state  # the cut must come mid-evaluation
+    # the cut must come mid-evaluation, with episodes left to run while it lasts
+    assert state["state"] == "running", state
+    assert state["progress"]["done"] < state["progress"]["total"], state
     return cluster.host_running(sid)
 
 
