@@ -16,7 +16,8 @@ import pytest
 from tests.worker.redis_server import free_port
 
 
-def _missing(message: str) -> None:
+def missing(message: str) -> None:
+    """A part this test needs cannot run here: skipped, but a failure in CI (`CI=true`)."""
     if os.environ.get("CI") == "true":
         pytest.fail(message)
     pytest.skip(message)
@@ -27,7 +28,7 @@ class PrivatePostgres:
 
     def __init__(self) -> None:
         if shutil.which("initdb") is None or shutil.which("pg_ctl") is None:
-            _missing("initdb/pg_ctl are not installed (apt-get install postgresql)")
+            missing("initdb/pg_ctl are not installed (apt-get install postgresql)")
         self._as: list[str] = []
         # Not under pytest's tmp_path: as root that is 0700 and the postgres user cannot enter.
         self.work = Path(tempfile.mkdtemp(prefix="manieval-pg-"))
@@ -35,7 +36,7 @@ class PrivatePostgres:
             try:
                 owner = pwd.getpwnam("postgres")
             except KeyError:
-                _missing("as root, initdb needs a `postgres` system user")
+                missing("as root, initdb needs a `postgres` system user")
             os.chown(self.work, owner.pw_uid, owner.pw_gid)
             self._as = ["runuser", "-u", "postgres", "--"]
         self.port = free_port()

@@ -21,11 +21,12 @@ import logging
 from typing import Any
 
 from celery import Celery
-from celery.signals import setup_logging, worker_init
+from celery.signals import setup_logging, worker_init, worker_ready, worker_shutdown
 
 from internal_api.tasks import RECONCILE, RUN_NEXT, WATCH
 from worker.server_api import ServerAPI
 from worker.settings import WorkerSettings
+from worker.spool_sender import SpoolSender
 
 log = logging.getLogger(__name__)
 RECONCILE_EVERY_S = 30.0
@@ -126,6 +127,21 @@ def _started(**_kwargs: Any) -> None:
         log.info("sent %s kept final reports; ended %s attempts of an earlier run", sent, ended)
 
 
+@functools.cache
+def _sender() -> SpoolSender:
+    return SpoolSender(ServerAPI.connect(_settings()), every_s=_settings().spool_retry_s)
+
+
+def _ready(**_kwargs: Any) -> None:
+    """Once the pool runs: try the spool again every `spool_retry_s` while the worker runs,
+    from a thread of this process (the pool's processes, forked before it, share the spool)."""
+    _sender().start()
+
+
+def _stopping(**_kwargs: Any) -> None:
+    _sender().stop(timeout=_settings().request_timeout_s)
+
+
 def _logging(**_kwargs: Any) -> None:
     """Celery's records go through ours: text or JSON lines (MANIEVAL_LOG_FORMAT)."""
     from internal_api.logs import configure_logging
@@ -135,4 +151,6 @@ def _logging(**_kwargs: Any) -> None:
 
 setup_logging.connect(_logging)
 worker_init.connect(_started)
+worker_ready.connect(_ready)
+worker_shutdown.connect(_stopping)
 app = make_app(_settings())

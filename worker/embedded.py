@@ -13,6 +13,7 @@ from worker.reconcile import reconcile_pass, runtime_cleaners
 from worker.run import run_next
 from worker.server_api import ServerAPI, ServerUnavailable
 from worker.settings import WorkerSettings
+from worker.spool_sender import resend_pass
 
 log = logging.getLogger(__name__)
 RECONCILE_EVERY_S = 30.0
@@ -88,7 +89,8 @@ class EmbeddedWorker:
 
     `queue` is the server's work queue (its outbox sends wake-ups into it); `start()` once the
     server answers: it sends what an earlier run kept in the spool, ends the attempts that died
-    with that run (they run again once), then drains the queue and reconciles every 30 s.
+    with that run (they run again once), then drains the queue, and reconciles and tries its
+    spool again every 30 s.
     `stop()` interrupts the evaluations in flight and leaves them for its caller to record
     (the service queues them again: `server.submissions.work.end_stopped`).
     """
@@ -170,6 +172,7 @@ class EmbeddedWorker:
         while not self._stop.wait(RECONCILE_EVERY_S):
             try:
                 reconcile_pass(self.api, cleaners=cleaners)
+                resend_pass(self.api)  # what a long outage left in the spool
             except Exception:
                 log.exception("reconciling failed; the next pass will try again")
 

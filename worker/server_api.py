@@ -3,8 +3,9 @@
 A worker claims work, reports its attempt's start, progress and end, and asks for reconciling
 passes, all over HTTP with the worker token. Nothing finished is lost to an outage: a claim or
 a final report that cannot be delivered (server down, its database down, 503) is retried with
-capped, jittered backoff, and a final report is written to the spool before it is sent, so a
-worker that must stop sends it again when it starts.
+capped, jittered backoff, and a final report is written to the spool before it is sent: one
+that outlasts its patience is sent again while the worker runs (`worker.spool_sender`), and
+when it starts.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import json
 import logging
 import os
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,6 +74,8 @@ class Spooled:
     submission_id: int
     attempt: int
     report: FinalReport
+    written: float = 0.0
+    """When it was written to the spool (seconds since the epoch)."""
 
 
 class Spool:
@@ -102,6 +106,12 @@ class Spool:
     def remove(self, submission_id: int, attempt: int) -> None:
         self._path(submission_id, attempt).unlink(missing_ok=True)
 
+    def set_aside(self, submission_id: int, attempt: int) -> None:
+        """Keep a report the server will never accept as `.bad`, out of the way of the others."""
+        path = self._path(submission_id, attempt)
+        if path.exists():
+            path.rename(path.with_suffix(".bad"))
+
     def __iter__(self) -> Iterator[Spooled]:
         if not self.directory.is_dir():
             return
@@ -112,6 +122,7 @@ class Spool:
                     int(body["submission_id"]),
                     int(body["attempt"]),
                     FinalReport.model_validate(body["report"]),
+                    path.stat().st_mtime,
                 )
             except (OSError, ValueError, KeyError, TypeError, ValidationError) as exc:
                 log.error("unreadable spooled report %s (%s); set aside as .bad", path, exc)
@@ -133,7 +144,9 @@ class ServerAPI:
         self._http = http
         self.spool = spool
         self._claim_patience = claim_patience_s
-        self._report_patience = report_patience_s
+        self.report_patience_s = report_patience_s
+        # a worker that gives up on its final report sooner does not wait longer for a video
+        self._upload_patience = min(VIDEO_PATIENCE_S, report_patience_s)
         self.stop = stop or threading.Event()
 
     @classmethod
@@ -205,27 +218,40 @@ class ServerAPI:
 
     def final(self, submission_id: int, attempt: int, report: FinalReport) -> State | None:
         """End the attempt; returns the submission's state, or None when the server could not
-        be reached in time (the report stays in the spool and is sent at the next start)."""
+        be reached in time (the report stays in the spool and is sent again later)."""
         self.spool.put(submission_id, attempt, report)
-        return self._deliver(submission_id, attempt, report)[1]
+        return self._deliver(submission_id, attempt, report, self.report_patience_s)[1]
 
-    def flush_spool(self) -> int:
-        """Send the reports a previous run of this worker could not deliver; returns how many
-        were settled (accepted, or no longer wanted)."""
+    def flush_spool(self, *, patience_s: float | None = None, quiet_s: float = 0.0) -> int:
+        """Send the reports kept in the spool, each retried for `patience_s` (default: the
+        report patience), until one cannot be delivered; returns how many were settled
+        (accepted, or no longer wanted). A report written less than `quiet_s` ago is left to
+        the sender that is still retrying it; one the server refuses for good is set aside."""
+        patience = self.report_patience_s if patience_s is None else patience_s
         settled = 0
         for item in self.spool:
             if self.stop.is_set():
                 break
-            settled += self._deliver(item.submission_id, item.attempt, item.report)[0]
+            if time.time() - item.written < quiet_s:
+                continue
+            try:
+                done = self._deliver(item.submission_id, item.attempt, item.report, patience)[0]
+            except RuntimeError as exc:  # a 4xx no retry can change (the worker token aside)
+                log.error("the server refused a kept final report for good; set aside: %s", exc)
+                self.spool.set_aside(item.submission_id, item.attempt)
+                continue
+            if not done:
+                break  # out of reach: the others would wait as long
+            settled += 1
         return settled
 
     def _deliver(
-        self, submission_id: int, attempt: int, report: FinalReport
+        self, submission_id: int, attempt: int, report: FinalReport, patience: float
     ) -> tuple[bool, State | None]:
         """Send a spooled report: (settled, the submission's state now)."""
         body = report.model_dump(mode="json")
         try:
-            out = self._report(submission_id, attempt, "final", body, self._report_patience)
+            out = self._report(submission_id, attempt, "final", body, patience)
         except ServerUnavailable as exc:
             log.error(
                 "the final report of submission %s attempt %s is kept in %s: %s",
@@ -254,7 +280,7 @@ class ServerAPI:
         which); False when the attempt is no longer current or running."""
         url = f"{_attempt(submission_id, attempt)}/videos/{path.name}"
         content = (path.read_bytes(), "video/mp4")
-        response = self._send("PUT", url, None, patience=VIDEO_PATIENCE_S, content=content)
+        response = self._send("PUT", url, None, patience=self._upload_patience, content=content)
         return response.status_code not in (404, 409)
 
     def upload_poster(self, submission_id: int, attempt: int, video: Path, poster: Path) -> bool:
@@ -262,7 +288,7 @@ class ServerAPI:
         or running."""
         url = f"{_attempt(submission_id, attempt)}/videos/{video.name}/poster"
         content = (poster.read_bytes(), "image/jpeg")
-        response = self._send("PUT", url, None, patience=VIDEO_PATIENCE_S, content=content)
+        response = self._send("PUT", url, None, patience=self._upload_patience, content=content)
         return response.status_code not in (404, 409)
 
     def upload_trajectory(self, submission_id: int, attempt: int, path: Path) -> bool:
@@ -271,7 +297,7 @@ class ServerAPI:
         url = f"{_attempt(submission_id, attempt)}/trajectories/{path.name}"
         media = "application/x-hdf5" if path.suffix == ".h5" else "application/json"
         content = (path.read_bytes(), media)
-        response = self._send("PUT", url, None, patience=VIDEO_PATIENCE_S, content=content)
+        response = self._send("PUT", url, None, patience=self._upload_patience, content=content)
         return response.status_code not in (404, 409)
 
     # Reconciling -----------------------------------------------------------------------------

@@ -46,9 +46,12 @@ class WorkerSettings(BaseSettings):
     data_dir: Path = Field(default_factory=_default_data_dir)
     spool_dir: Path | None = None
     """Final reports not yet accepted by the server (default ``<data_dir>/spool``): kept across
-    a restart and sent again when the worker starts."""
+    a restart, sent again while the worker runs and when it starts."""
     report_patience_s: float = Field(default=900.0, gt=0)
-    """How long a final report is retried before it is left in the spool for the next start."""
+    """How long a final report is retried before it is left in the spool."""
+    spool_retry_s: float = Field(default=30.0, gt=0)
+    """How often a Celery worker tries its spool again while it runs (`worker.spool_sender`):
+    a report kept through a network partition lands this soon after the link returns."""
     claim_patience_s: float = Field(default=300.0, gt=0)
     """How long a claim is retried while the server or its database is down."""
     request_timeout_s: float = Field(default=30.0, gt=0)

@@ -124,6 +124,10 @@ class Settings(BaseSettings):
 
     inline_workers: int = Field(default=1, ge=1, le=64)
     """Evaluations the embedded worker runs at once."""
+    heartbeat_timeout_s: float = Field(default=180.0, gt=0)
+    """A running attempt whose worker has not reported for this long is lost: the reconciler
+    ends it `error` (ours) and queues it once more. Also how long a partitioned worker's
+    attempt waits before it runs elsewhere."""
 
     max_running_per_user: int = Field(default=2, ge=1, le=1000)
     """Evaluations of one participant running at once, across challenges (fairness)."""

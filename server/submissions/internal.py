@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hmac
 from collections.abc import Callable
+from datetime import timedelta
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Request, Response
@@ -33,7 +34,7 @@ from internal_api.schemas import (
 from server.kit.deps import DBDep
 from server.kit.errors import Unauthorized
 from server.submissions.deps import services
-from server.submissions.reconcile import reconcile, silent
+from server.submissions.reconcile import Timeouts, reconcile, silent
 from server.submissions.reports import (
     check_running,
     current_state,
@@ -209,15 +210,19 @@ async def _keep(
     await run_in_threadpool(kept)
 
 
+def _timeouts(request: Request) -> Timeouts:
+    return Timeouts(heartbeat=timedelta(seconds=services(request).settings.heartbeat_timeout_s))
+
+
 @router.get("/attempts/silent")
-def get_silent(db: DBDep) -> Silent:
-    return Silent(attempts=silent(db))
+def get_silent(db: DBDep, request: Request) -> Silent:
+    return Silent(attempts=silent(db, timeouts=_timeouts(request)))
 
 
 @router.post("/reconcile")
 def post_reconcile(request: Request) -> ReconcileOut:
     svc = services(request)
-    return reconcile(svc.sessions, svc.dispatcher.work)
+    return reconcile(svc.sessions, svc.dispatcher.work, timeouts=_timeouts(request))
 
 
 @router.post("/workers/{worker}/restarted")

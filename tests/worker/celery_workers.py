@@ -1,6 +1,6 @@
-"""Real `celery worker` processes for the worker tests (tests/worker/test_celery.py and
-test_outages.py): their environment, checked to hold no database URL or server secret, how
-they start, and a challenge added to the server they report to."""
+"""Real `celery worker` processes for the worker tests (tests/worker/test_celery.py,
+test_outages.py and test_partition.py): their environment, checked to hold no database URL or
+server secret, how they start, and a challenge added to the server they report to."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from server.challenges.service import ChallengeOptions, load_challenge
@@ -26,7 +27,13 @@ WORKER_KEYS = {
     "MANIEVAL_ALLOW_LOCAL_POLICIES",
     "MANIEVAL_DATA_DIR",
 }
-OPTIONAL_KEYS = {"MANIEVAL_WORKER_NAME", "MANIEVAL_RECONCILE_QUEUE"}  # names, not secrets
+OPTIONAL_KEYS = {  # names and patience, not secrets
+    "MANIEVAL_WORKER_NAME",
+    "MANIEVAL_RECONCILE_QUEUE",
+    "MANIEVAL_REPORT_PATIENCE_S",
+    "MANIEVAL_REQUEST_TIMEOUT_S",
+    "MANIEVAL_SPOOL_RETRY_S",
+}
 SECRETS = {"MANIEVAL_DATABASE_URL", "MANIEVAL_SECRET_KEY", "MANIEVAL_SEED_SECRET"}
 
 # The worker process with its `local:` policies in the given directory, then `celery ARGS`.
@@ -92,14 +99,21 @@ def worker_environment(
 
 
 def celery_worker(
-    env: dict[str, str], *, queues: str, policies: Path, log: Path
+    env: dict[str, str],
+    *,
+    queues: str,
+    policies: Path,
+    log: Path,
+    prefix: Sequence[str] = (),
 ) -> subprocess.Popen[bytes]:
-    """`celery worker` in its own process group (killed as a whole), one task at a time."""
+    """`celery worker` in its own process group (killed as a whole), one task at a time;
+    `prefix` runs it through another command (`ip netns exec NS`, which execs it in place)."""
     with log.open("ab") as out:
         return subprocess.Popen(
-            [sys.executable, "-c", LAUNCHER, str(policies), "-A", "worker.celery_app", "worker",
-             "--pool", "solo", "--concurrency", "1", "--without-gossip", "--without-mingle",
-             "--without-heartbeat", "--loglevel", "INFO", "-Q", queues],
+            [*prefix, sys.executable, "-c", LAUNCHER, str(policies),
+             "-A", "worker.celery_app", "worker", "--pool", "solo", "--concurrency", "1",
+             "--without-gossip", "--without-mingle", "--without-heartbeat",
+             "--loglevel", "INFO", "-Q", queues],
             env=env, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
         )  # fmt: skip
 

@@ -19,15 +19,17 @@ def free_port() -> int:
 
 
 class Redis:
-    def __init__(self, work: Path) -> None:
+    """`host`: the address it listens on (loopback, or the test's own network's: test_partition)."""
+
+    def __init__(self, work: Path, *, host: str = "127.0.0.1") -> None:
         binary = shutil.which("redis-server")
         if binary is None:
             message = "redis-server is not installed (apt-get install redis-server)"
             if os.environ.get("CI") == "true":
                 pytest.fail(message)
             pytest.skip(message)
-        self.binary, self.work, self.port = binary, work, free_port()
-        self.url = f"redis://127.0.0.1:{self.port}/0"
+        self.binary, self.work, self.host, self.port = binary, work, host, free_port()
+        self.url = f"redis://{host}:{self.port}/0"
         self.process: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
@@ -37,7 +39,10 @@ class Redis:
                 "--port",
                 str(self.port),
                 "--bind",
-                "127.0.0.1",
+                self.host,
+                # No password: off loopback only on a test's own network (tests/worker/netns.py)
+                "--protected-mode",
+                "yes" if self.host == "127.0.0.1" else "no",
                 "--save",
                 "",
                 "--appendonly",
@@ -51,7 +56,7 @@ class Redis:
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline:
             try:
-                socket.create_connection(("127.0.0.1", self.port), timeout=0.2).close()
+                socket.create_connection((self.host, self.port), timeout=0.2).close()
                 return
             except OSError:
                 time.sleep(0.05)
