@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import getpass
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -50,6 +52,19 @@ def migrated_sessions(s: Settings) -> sessionmaker[Session]:
 
     upgrade(s.resolved_database_url)
     return session_factory(make_engine(s.resolved_database_url))
+
+
+@contextmanager
+def _transaction(s: Settings | None = None) -> Iterator[Session]:
+    """One transaction on the configured (migrated) database; a refusal of the service's
+    (`AppError`) ends the command with its message and exit status 1."""
+    sessions = migrated_sessions(s or settings())
+    try:
+        with sessions.begin() as db:
+            yield db
+    except AppError as exc:
+        console.print(f"[red]error:[/] {exc.message}")
+        raise typer.Exit(1) from None
 
 
 @db_app.command("upgrade")
@@ -373,13 +388,8 @@ def challenge_teams(
     if mode not in ("on", "off"):
         console.print("[red]error:[/] say on or off")
         raise typer.Exit(2)
-    sessions = migrated_sessions(settings())
-    try:
-        with sessions.begin() as db:
-            set_team_mode(db, slug=slug, on=mode == "on")
-    except AppError as exc:
-        console.print(f"[red]error:[/] {exc.message}")
-        raise typer.Exit(1) from None
+    with _transaction() as db:
+        set_team_mode(db, slug=slug, on=mode == "on")
     counted = "per team" if mode == "on" else "per user"
     console.print(f"challenge {slug}: quotas and leaderboard rows count {counted}")
 
@@ -393,14 +403,9 @@ def challenge_close(
     post-deadline board), and final choices stand."""
     from server.challenges.service import close_phase
 
-    sessions = migrated_sessions(settings())
-    try:
-        with sessions.begin() as db:
-            closed = close_phase(db, slug=slug, phase=phase)
-            rule = closed.after_close
-    except AppError as exc:
-        console.print(f"[red]error:[/] {exc.message}")
-        raise typer.Exit(1) from None
+    with _transaction() as db:
+        closed = close_phase(db, slug=slug, phase=phase)
+        rule = closed.after_close
     late = "go to its post-deadline board" if rule == "post_deadline" else "are refused"
     console.print(f"challenge {slug}: phase {phase} closed; later submissions {late}")
 
@@ -413,13 +418,8 @@ def challenge_publish(
     """Show a phase's hidden board (`board: hidden` in its suite) to everyone."""
     from server.challenges.service import publish_board
 
-    sessions = migrated_sessions(settings())
-    try:
-        with sessions.begin() as db:
-            publish_board(db, slug=slug, phase=phase)
-    except AppError as exc:
-        console.print(f"[red]error:[/] {exc.message}")
-        raise typer.Exit(1) from None
+    with _transaction() as db:
+        publish_board(db, slug=slug, phase=phase)
     console.print(f"challenge {slug}: the board of phase {phase} is public")
 
 
@@ -436,27 +436,20 @@ def challenge_reevaluate(
     from server.submissions.reevaluation import NothingToReevaluate, Started, reevaluate
 
     s = settings()
-    sessions = migrated_sessions(s)
     started: list[Started] = []
     skipped: list[str] = []
-    try:
-        with sessions.begin() as db:
-            challenge = get_challenge(db, slug=slug)
-            phases = [get_phase(challenge, phase)] if phase is not None else challenge.phases
-            for target in phases:
-                try:
-                    started.append(
-                        reevaluate(db, challenge=challenge, phase=target, by="the operator")
-                    )
-                except NothingToReevaluate:
-                    if phase is not None:
-                        raise
-                    skipped.append(target.name)  # of every phase, those without entries
-            if not started:
-                raise AppError(f"no phase of {slug!r} has entries on its board to re-evaluate")
-    except AppError as exc:
-        console.print(f"[red]error:[/] {exc.message}")
-        raise typer.Exit(1) from None
+    with _transaction(s) as db:
+        challenge = get_challenge(db, slug=slug)
+        phases = [get_phase(challenge, phase)] if phase is not None else challenge.phases
+        for target in phases:
+            try:
+                started.append(reevaluate(db, challenge=challenge, phase=target, by="the operator"))
+            except NothingToReevaluate:
+                if phase is not None:
+                    raise
+                skipped.append(target.name)  # of every phase, those without entries
+        if not started:
+            raise AppError(f"no phase of {slug!r} has entries on its board to re-evaluate")
     for done in started:
         console.print(
             f"challenge {slug} phase {done.phase}: {len(done.submissions)} entries queued for "
