@@ -215,6 +215,8 @@ def _evaluate(
     stopped_as: list[State] = []
     interrupted = threading.Event()
     finished = threading.Event()
+    wake = threading.Event()  # an episode's report asks the heartbeat to send now
+    sent: list[dict[str, Any]] = []  # the last progress sent
     lock = threading.Lock()
 
     def should_stop() -> bool:
@@ -223,11 +225,14 @@ def _evaluate(
             return True
         return stopped.is_set()
 
-    def send() -> None:
+    def send(*, unless_sent: bool = False) -> None:
         if api.stop.is_set():  # stopping: nothing of this run is reported any more
             return
         with lock:
             snapshot = dict(progress)
+        if unless_sent and sent and snapshot == sent[-1]:
+            return
+        sent[-1:] = [snapshot]
         try:
             out = api.progress(sid, attempt, snapshot)
             if not out.applied:  # cancelled, or timed out or given up by the reconciler
@@ -246,14 +251,23 @@ def _evaluate(
             if now - last_report < PROGRESS_INTERVAL_S and done < total:
                 return
             last_report = now
-        send()
+        wake.set()
 
-    def heartbeat() -> None:  # also while an episode or a slow first call takes long
-        while not finished.wait(HEARTBEAT_INTERVAL_S):
+    def heartbeat() -> None:
+        """Send the progress every HEARTBEAT_INTERVAL_S (also while an episode or a slow first
+        call takes long) and when an episode's report asks: from this thread, never the
+        evaluation's, so a server that does not answer (a worker cut off from it) costs the
+        episodes nothing. Once the run finished, what the last report said, if not sent yet."""
+        while True:
+            wake.wait(HEARTBEAT_INTERVAL_S)
+            wake.clear()
+            last = finished.is_set()
             try:
-                send()
+                send(unless_sent=last)
             except Exception:
                 log.exception("heartbeat of submission %s failed", sid)
+            if last:
+                return
 
     beat = threading.Thread(target=heartbeat, name=f"heartbeat-{sid}", daemon=True)
     beat.start()
@@ -270,6 +284,7 @@ def _evaluate(
         )
     finally:
         finished.set()
+        wake.set()
         beat.join()
     if stopped_as:
         return Ended(stopped_as[0], None if interrupted.is_set() else result)

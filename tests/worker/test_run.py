@@ -1,0 +1,72 @@
+"""worker/run.py: an evaluation's progress goes to the server from the heartbeat's thread, so
+a server that does not answer (a worker cut off from it) never holds the episodes up."""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import pytest
+
+from evaluator import evaluation
+from evaluator.results import EpisodeResult, EvaluationResult
+from evaluator.sources import LocalDirectory
+from internal_api.schemas import ReportOut, State
+from testkit.waiting import until
+from tests.evaluator.conftest import SCRIPTED, tiny_plan
+from worker import run
+
+pytestmark = pytest.mark.sim
+
+
+class SilentServer:
+    """A server whose answers to progress hang until `answer` is set (a cut link)."""
+
+    def __init__(self) -> None:
+        self.stop = threading.Event()
+        self.answer = threading.Event()
+        self.sent: list[dict[str, Any]] = []
+
+    def progress(self, _sid: int, _attempt: int, progress: dict[str, Any]) -> ReportOut:
+        assert self.answer.wait(600), "the test never let the server answer"
+        self.sent.append(progress)
+        return ReportOut(applied=True, state=State.RUNNING)
+
+
+def test_episodes_go_on_while_the_server_does_not_answer_their_progress(
+    monkeypatch: pytest.MonkeyPatch,
+):
+    plan = tiny_plan(tasks=["PickCube-v1"], conditions=["nominal"], episodes=3)
+    ran: list[EpisodeResult] = []
+    real = evaluation.evaluate
+
+    def counting(*args: Any, **kwargs: Any) -> EvaluationResult:
+        told = kwargs["on_episode"]
+
+        def on_episode(run_index: int, episode: EpisodeResult) -> None:
+            told(run_index, episode)  # the worker's report: it must not wait on the server
+            ran.append(episode)
+
+        return real(*args, **{**kwargs, "on_episode": on_episode})
+
+    monkeypatch.setattr(evaluation, "evaluate", counting)
+    server = SilentServer()
+    outcome: list[object] = []
+    evaluating = threading.Thread(
+        target=lambda: outcome.append(
+            run._evaluate(server, 1, 1, plan, LocalDirectory(SCRIPTED), processes=0)  # type: ignore[arg-type]
+        )
+    )
+    evaluating.start()
+    try:
+        until(
+            lambda: len(ran) == plan.episode_count(),
+            "every episode, the server silent",
+            timeout=600,
+        )
+    finally:
+        server.answer.set()  # the link is back
+        evaluating.join(600)
+    (result,) = outcome
+    assert isinstance(result, EvaluationResult)
+    assert server.sent[-1]["done"] == plan.episode_count()  # the last word reached it
