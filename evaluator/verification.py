@@ -126,11 +126,15 @@ def problems(report: VerificationReport | None, suite: Suite, *, path: Path) -> 
     """Why `suite` (as loaded, its packages pinned) is not verified by the report at `path`:
     none there, made for another suite, or failing the suite's thresholds now (empty: none)."""
     if report is None:
-        return [f"no verification report at {path}: run `manieval challenge verify`"]
+        # Names only: the problems are shown on the challenge's public page.
+        return [
+            f"no verification report beside the suite ({path.name}): "
+            "run `manieval challenge verify`"
+        ]
     sha256 = suite.sha256()
     if report.suite.sha256 != sha256:
         return [
-            f"the verification report at {path} is of another suite (sha256 "
+            f"the verification report {path.name} is of another suite (sha256 "
             f"{report.suite.sha256[:12]}, this one's is {sha256[:12]}): verify it again"
         ]
     return failures(report, suite)

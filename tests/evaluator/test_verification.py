@@ -96,7 +96,8 @@ def test_a_report_of_another_suite_or_none_at_all_verifies_nothing() -> None:
     assert "verify it again" in stale[0]
     missing = problems(None, suite, path=Path("s.verification.json"))
     assert missing == [
-        "no verification report at s.verification.json: run `manieval challenge verify`"
+        "no verification report beside the suite (s.verification.json): "
+        "run `manieval challenge verify`"
     ]
 
 

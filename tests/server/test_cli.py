@@ -252,7 +252,7 @@ def test_challenge_load_refuses_an_unverified_suite_unless_told_unverified(env: 
     r = runner.invoke(app, ["challenge", "load", str(SUITE)])
     assert r.exit_code == 1, r.output
     assert "suite 'server-tiny' is not verified" in r.output
-    assert f"no verification report at {report_path(SUITE)}" in r.output
+    assert f"no verification report beside the suite ({report_path(SUITE).name})" in r.output
     assert "or load it with --unverified" in r.output
     with db_session(env) as db:
         assert db.scalar(select(Challenge)) is None

@@ -10,11 +10,13 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any, TypeVar
 
 import pytest
 import uvicorn
 from fastapi import FastAPI
 
+T = TypeVar("T", bound=Any)
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
     "--headless",
@@ -25,6 +27,9 @@ CHROMIUM_ARGS = [
     "--disable-sync",
 ]
 START_TIMEOUT_S = 120.0  # a generous bound on uvicorn starting on a busy machine
+PATIENCE_MS = 120_000
+"""How long a browser test's navigations and actions may take before they fail: Playwright's
+own default, 30 s, is a page load on a busy machine. A bound, never a measure."""
 
 
 def require_chromium() -> None:
@@ -35,6 +40,14 @@ def require_chromium() -> None:
     if os.environ.get("CI") == "true":
         pytest.fail(message)
     pytest.skip(message)
+
+
+def patient(target: T) -> T:
+    """`target` (a browser context, or a page of its own) waiting up to PATIENCE_MS for its
+    navigations and actions."""
+    target.set_default_navigation_timeout(PATIENCE_MS)
+    target.set_default_timeout(PATIENCE_MS)
+    return target
 
 
 def free_port() -> int:

@@ -17,7 +17,7 @@ from server.kit.apidocs import mount_api_docs
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
 from testkit.factories import RecordingQueue
-from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving
+from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, patient, require_chromium, serving
 
 
 def test_docs_page_uses_local_assets_and_no_inline_script(client: TestClient) -> None:
@@ -92,7 +92,7 @@ def test_docs_page_lists_the_operations_with_every_other_host_blocked(served: st
 
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        page = patient(browser.new_page(viewport={"width": 1280, "height": 900}))
         page.route("**/*", only_loopback)
         page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda exc: problems.append(str(exc)))

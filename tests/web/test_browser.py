@@ -7,9 +7,7 @@ Screenshots of each page are kept under $MANIEVAL_ARTEFACTS/web (or the test's t
 
 from __future__ import annotations
 
-import os
 import re
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -23,30 +21,19 @@ from manieval.service import embedded_worker_settings
 from server.app import create_app
 from server.kit.settings import Settings
 from testkit.factories import embedded_database
+from tests.web.browser_support import (
+    CHROMIUM,
+    CHROMIUM_ARGS,
+    free_port,
+    patient,
+    require_chromium,
+)
 from worker.embedded import EmbeddedWorker, InlineQueue
 
 pytestmark = pytest.mark.sim
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 PASSWORD = "a sturdy passphrase for tests"
 EVALUATION_TIMEOUT_MS = 240_000  # a generous bound on a tiny evaluation, never asserted on
-
-
-def require_chromium() -> None:
-    if CHROMIUM.exists():
-        return
-    message = f"Debian's Chromium is not installed at {CHROMIUM} (apt-get install chromium)"
-    if os.environ.get("CI") == "true":
-        pytest.fail(message)
-    pytest.skip(message)
 
 
 @dataclass
@@ -78,12 +65,6 @@ class GatedQueue:
 class Server:
     url: str
     gate: GatedQueue
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture
@@ -127,7 +108,7 @@ def test_register_token_submit_follow_live_and_find_it_on_the_leaderboard(
     problems: list[str] = []
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        context = browser.new_context(viewport={"width": 1280, "height": 900})
+        context = patient(browser.new_context(viewport={"width": 1280, "height": 900}))
         page = context.new_page()
         page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda exc: problems.append(str(exc)))
@@ -210,7 +191,7 @@ def test_register_token_submit_follow_live_and_find_it_on_the_leaderboard(
         expect(page.get_by_role("heading", name="Episodes")).to_be_visible()
         shot("submission")
 
-        phone = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True)
+        phone = patient(browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True))
         small = phone.new_page()
         small.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
         small.on("pageerror", lambda exc: problems.append(str(exc)))

@@ -19,7 +19,7 @@ from server.app import create_app
 from server.kit.settings import Settings
 from server.models import Challenge
 from testkit.factories import PASSWORD, RecordingQueue, embedded_database, make_user
-from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving
+from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, patient, require_chromium, serving
 from tests.web.helpers import finished
 
 PHONE = {"width": 390, "height": 844}
@@ -76,7 +76,7 @@ def test_reloading_a_new_token_shows_the_account_and_error_pages_keep_the_accoun
     problems: list[str] = []
     with sync_playwright() as p:
         chromium = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        context = chromium.new_context(viewport={"width": 1280, "height": 800})
+        context = patient(chromium.new_context(viewport={"width": 1280, "height": 800}))
         page = context.new_page()
         _watch(page, problems)
         _log_in(page, site.url)
@@ -165,7 +165,7 @@ def test_on_a_phone_key_columns_are_in_view_and_chart_labels_readable(site: Site
     problems: list[str] = []
     with sync_playwright() as p:
         chromium = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        phone = chromium.new_context(viewport=PHONE, is_mobile=True, has_touch=True)
+        phone = patient(chromium.new_context(viewport=PHONE, is_mobile=True, has_touch=True))
         page = phone.new_page()
         _watch(page, problems)
         _log_in(page, site.url)

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.cli.push_support import CHALLENGE, TAG, Embedded, build_template, embedded_service
-from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium
+from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, patient, require_chromium
 
 pytestmark = pytest.mark.sim
 
@@ -57,7 +57,7 @@ def test_the_submit_page_leads_from_a_pushed_image_to_a_ranked_submission(
     problems: list[str] = []
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
+        page = patient(browser.new_context(viewport={"width": 1280, "height": 900})).new_page()
         page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda exc: problems.append(str(exc)))
 

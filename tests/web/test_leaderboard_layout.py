@@ -33,7 +33,7 @@ from server.models import Challenge, State
 from server.standings.entries import refresh
 from server.submissions.reports import report_final, report_state
 from testkit.factories import RecordingQueue, make_user, queue_submission
-from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving
+from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, patient, require_chromium, serving
 
 SUITE = load_suite("maniskill-core")
 TASKS = [t.env_id for t in SUITE.tasks]
@@ -163,7 +163,7 @@ def test_every_leaderboard_column_is_in_view_at_1280_px_with_ties_marked(
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
         for width in (1280, 1440, 1920):
-            page = browser.new_page(viewport={"width": width, "height": 900})
+            page = patient(browser.new_page(viewport={"width": width, "height": 900}))
             page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
             page.on("pageerror", lambda exc: problems.append(str(exc)))
             page.goto(f"{board.url}/challenges/{board.challenge}/leaderboard?phase=dev")
@@ -212,7 +212,9 @@ def test_on_a_phone_rank_and_participant_stay_while_the_rest_scrolls_with_a_cue(
     problems: list[str] = []
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True)
+        context = patient(
+            browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True)
+        )
         page = context.new_page()
         page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda exc: problems.append(str(exc)))

@@ -15,7 +15,7 @@ from server.app import create_app
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
 from testkit.factories import PASSWORD, RecordingQueue, make_user
-from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving
+from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, patient, require_chromium, serving
 
 AA_NORMAL_TEXT = 4.5
 VIEWPORTS = [{"width": 1280, "height": 800}, {"width": 390, "height": 844}]
@@ -117,7 +117,7 @@ def test_the_send_a_new_link_button_reaches_aa_contrast(
     ratios: dict[str, float] = {}
     with sync_playwright() as p:
         chromium = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        page = chromium.new_page(viewport=viewport)  # type: ignore[arg-type]
+        page = patient(chromium.new_page(viewport=viewport))  # type: ignore[arg-type]
         page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda exc: problems.append(str(exc)))
         page.goto(f"{served}/login")

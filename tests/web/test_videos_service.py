@@ -29,7 +29,7 @@ from server.challenges.service import ChallengeOptions, load_challenge
 from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
 from testkit.factories import PASSWORD, make_user
-from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium
+from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, patient, require_chromium
 
 pytestmark = pytest.mark.sim
 
@@ -221,7 +221,7 @@ def test_the_owner_plays_the_episode_on_the_submission_page(recorded: Recorded, 
     problems: list[str] = []
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
+        page = patient(browser.new_context(viewport={"width": 1280, "height": 900})).new_page()
         page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda exc: problems.append(str(exc)))
         page.goto(f"{recorded.url}/login")

@@ -18,7 +18,7 @@ from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
 from server.models import Challenge
 from testkit.factories import PASSWORD, RecordingQueue, make_user
-from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, require_chromium, serving
+from tests.web.browser_support import CHROMIUM, CHROMIUM_ARGS, patient, require_chromium, serving
 from tests.web.helpers import browser, csrf_of
 
 
@@ -106,7 +106,7 @@ def test_rejected_forms_come_back_with_their_problems_and_no_console_error(serve
     problems: list[str] = []
     with sync_playwright() as p:
         chromium = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        page = chromium.new_page(viewport={"width": 1280, "height": 900})
+        page = patient(chromium.new_page(viewport={"width": 1280, "height": 900}))
         page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda exc: problems.append(str(exc)))
         page.goto(f"{served}/register")
