@@ -10,6 +10,7 @@ when it starts.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -118,15 +119,20 @@ class Spool:
         for path in sorted(self.directory.glob("*.json")):
             try:
                 body = json.loads(path.read_text())
-                yield Spooled(
+                item = Spooled(
                     int(body["submission_id"]),
                     int(body["attempt"]),
                     FinalReport.model_validate(body["report"]),
                     path.stat().st_mtime,
                 )
+            except FileNotFoundError:  # delivered and removed meanwhile: another thread sends
+                continue  # the spool too (the spool sender beside a run's own final report)
             except (OSError, ValueError, KeyError, TypeError, ValidationError) as exc:
                 log.error("unreadable spooled report %s (%s); set aside as .bad", path, exc)
-                path.rename(path.with_suffix(".bad"))
+                with contextlib.suppress(FileNotFoundError):
+                    path.rename(path.with_suffix(".bad"))
+                continue
+            yield item
 
 
 class ServerAPI:
