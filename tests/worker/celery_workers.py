@@ -46,6 +46,25 @@ LAUNCHER = (
 )
 
 
+def celery_server_settings(
+    work: Path, *, database_url: str, broker_url: str, queue: str, **extra: object
+) -> Settings:
+    """A server's settings for tests with real Celery workers: a private database and broker,
+    its own queue, the bundled `local:` policies, and rates no test reaches."""
+    return Settings(
+        dev_mode=True,
+        data_dir=work / "server",
+        database_url=database_url,
+        queue="celery",
+        broker_url=broker_url,
+        celery_queue=queue,
+        allow_local_policies=True,
+        cookie_secure=False,
+        submit_rate="1000/minute",
+        **extra,  # type: ignore[arg-type]
+    )
+
+
 def add_challenge(settings: Settings, name: str, **replace: str) -> None:
     """Another challenge of the server test suite, named `name`, with text replaced."""
     suite = settings.data_dir / f"{name}.yaml"

@@ -40,7 +40,13 @@ from testkit.factories import PASSWORD, embedded_database
 from testkit.waiting import poll, until
 from testkit.workers import public_api
 from tests.private_postgres import PrivatePostgres
-from tests.worker.celery_workers import add_challenge, celery_worker, wait_ready, worker_environment
+from tests.worker.celery_workers import (
+    add_challenge,
+    celery_server_settings,
+    celery_worker,
+    wait_ready,
+    worker_environment,
+)
 from tests.worker.redis_server import Redis, free_port
 
 pytestmark = [pytest.mark.sim, pytest.mark.long, pytest.mark.timeout(900)]
@@ -79,16 +85,11 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     try:
         pg.start()
         redis.start()
-        settings = Settings(
-            dev_mode=True,
-            data_dir=work / "server",
+        settings = celery_server_settings(
+            work,
             database_url=pg.url,
-            queue="celery",
             broker_url=redis.url,
-            celery_queue=f"outages-{redis.port}",
-            allow_local_policies=True,
-            cookie_secure=False,
-            submit_rate="1000/minute",
+            queue=f"outages-{redis.port}",
             token_rate="1000/minute",
         )
         sessions = embedded_database(settings, quota_concurrent=50, quota_per_day=1000)

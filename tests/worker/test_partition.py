@@ -41,13 +41,18 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from internal_api.schemas import FINAL_STATES
 from manieval.service import Service
-from server.kit.settings import Settings
 from server.models import Cause, State, Submission, TaskResultRow, Transition, utcnow
 from testkit.factories import PASSWORD, embedded_database
 from testkit.waiting import poll, until
 from testkit.workers import public_api
 from tests.private_postgres import PrivatePostgres
-from tests.worker.celery_workers import add_challenge, celery_worker, wait_ready, worker_environment
+from tests.worker.celery_workers import (
+    add_challenge,
+    celery_server_settings,
+    celery_worker,
+    wait_ready,
+    worker_environment,
+)
 from tests.worker.netns import Host, Network, make_network
 from tests.worker.redis_server import Redis, free_port
 from worker.server_api import ServerAPI
@@ -104,16 +109,11 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
         redis = Redis(work, host=network.address)
         pg.start()
         redis.start()
-        settings = Settings(
-            dev_mode=True,
-            data_dir=work / "server",
+        settings = celery_server_settings(
+            work,
             database_url=pg.url,
-            queue="celery",
             broker_url=redis.url,
-            celery_queue=f"partition-{redis.port}",
-            allow_local_policies=True,
-            cookie_secure=False,
-            submit_rate="1000/minute",
+            queue=f"partition-{redis.port}",
             heartbeat_timeout_s=HEARTBEAT_TIMEOUT_S,
         )
         sessions = embedded_database(settings, quota_concurrent=50, quota_per_day=1000)
