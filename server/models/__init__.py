@@ -9,6 +9,7 @@ Alembic migrations in ``alembic/versions`` are the only way this schema reaches 
 
 from internal_api.schemas import ACTIVE_STATES, FINAL_STATES, State
 from server.models.accounts import ApiToken, Session, User
+from server.models.audit import AuditRecord
 from server.models.base import NAMING, Base, UTCDateTime, utcnow
 from server.models.challenges import Challenge, Phase
 from server.models.leaderboard import LeaderboardEntry
@@ -27,6 +28,7 @@ __all__ = [
     "FINAL_STATES",
     "NAMING",
     "ApiToken",
+    "AuditRecord",
     "Base",
     "Cause",
     "Challenge",

@@ -22,6 +22,11 @@ class User(Base):
     email_verified_at: Mapped[datetime | None]
     """When the owner followed a link mailed to `email`; None: not (yet) verified."""
 
+    disabled_at: Mapped[datetime | None]
+    """When an admin disabled the account: it can neither log in nor use its tokens, and its
+    queued work is cancelled; None: enabled."""
+    disabled_reason: Mapped[str | None] = mapped_column(String(2000))
+
     @property
     def email_verified(self) -> bool:
         return self.email_verified_at is not None

@@ -85,6 +85,11 @@ class Submission(Base):
     """The submitter's team when it was made: it stays the team's (docs/server.md, Teams)."""
     public: Mapped[bool] = mapped_column(Boolean, default=True)
     hidden: Mapped[bool] = mapped_column(Boolean, default=False)
+    """Taken off every board by an organizer (`moderation_reason` says why)."""
+    disqualified: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    """Ruled out by an organizer: it stays on the board, unranked, with `moderation_reason`."""
+    moderation_reason: Mapped[str | None] = mapped_column(String(2000))
+    """Why an organizer hid or disqualified it, as the board and its page show; None: never."""
     baseline: Mapped[bool] = mapped_column(Boolean, default=False)
     state: Mapped[State] = mapped_column(_state_enum, default=State.QUEUED)
     reason: Mapped[str] = mapped_column(String(2000), default="")
