@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import BaseModel, Field
 
 from evaluator.verification import VerificationReport
+from server.kit.schemas import InBody
 
 
 class PhaseOut(BaseModel):
@@ -109,4 +110,32 @@ class ChallengeOut(ChallengeSummary):
     )
     quota_shared: bool = Field(
         default=False, description="The group's tracks draw on one quota, the head's"
+    )
+
+
+class ChallengeSettingsIn(InBody):
+    """What an organizer changes on a challenge; a field left out stays as it is."""
+
+    quota_per_day: int | None = Field(
+        default=None, description="submissions a participant (a team) may make a day, 1 or more"
+    )
+    quota_concurrent: int | None = Field(
+        default=None, description="submissions a participant (a team) may have queued or running"
+    )
+    team_mode: bool | None = Field(
+        default=None,
+        description="count quotas and leaderboard rows per team; a change recomputes the boards",
+    )
+
+
+class PhaseDatesIn(InBody):
+    """A phase's dates; a field left out stays as it is, null removes the date. A date without
+    a zone is UTC."""
+
+    # Not strict: a date arrives as the JSON text ISO 8601 writes it.
+    opens_at: datetime | None = Field(
+        default=None, strict=False, description="when submissions open"
+    )
+    closes_at: datetime | None = Field(
+        default=None, strict=False, description="when it closes: after `opens_at`, not in the past"
     )
