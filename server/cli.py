@@ -65,6 +65,8 @@ def _transaction(s: Settings | None = None) -> Iterator[Session]:
             yield db
     except AppError as exc:
         console.print(f"[red]error:[/] {exc.message}")
+        for field, problem in exc.fields.items():
+            console.print(f"  {field}: {problem}", highlight=False)
         raise typer.Exit(1) from None
 
 
