@@ -5,7 +5,7 @@ forms call the challenges' services, as the API does."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Annotated
 from urllib.parse import urlencode
 
@@ -226,8 +226,14 @@ def save_dates(
 
     def act() -> None:
         opens, closes = _date(form, "opens_at"), _date(form, "closes_at")
+        shown = challenges.get_phase(challenges.get_challenge(db, slug=slug), phase)
         challenges.update_phase(
-            db, slug=slug, phase=phase, by=admin, opens_at=opens, closes_at=closes
+            db,
+            slug=slug,
+            phase=phase,
+            by=admin,
+            opens_at=_change(opens, shown.opens_at),
+            closes_at=_change(closes, shown.closes_at),
         )
 
     return _attempt(request, who, db, slug, act, done="dates", form=form, error_phase=phase)
@@ -244,6 +250,15 @@ def _date(form: dict[str, str], name: str) -> datetime | None:
             "the phase's dates are not valid",
             fields={name: "a date and time like 2027-01-31T12:00 (UTC)"},
         ) from None
+
+
+def _change(sent: datetime | None, stored: datetime | None) -> challenges.DateChange:
+    """What the form asks of a date: the page shows dates to the minute, so a date sent back
+    as it was shown is left as it is (a closed phase's past close date among them)."""
+    if sent is not None and sent.tzinfo is None:
+        sent = sent.replace(tzinfo=UTC)
+    shown = stored.replace(second=0, microsecond=0) if stored is not None else None
+    return challenges.KEEP if sent == shown else sent
 
 
 @router.post("/admin/challenges/{slug}/phases/{phase}/open")

@@ -138,6 +138,16 @@ def test_phase_dates_open_and_close_from_the_settings_page(
     assert "is open already" in refused
     assert "The phase is closed" in _post(judge, page, f"{base}/close")
     assert not _test_phase(db, tiny).is_open(datetime.now(UTC))
+    closed = _test_phase(db, tiny)
+    assert closed.opens_at is not None
+    assert closed.closes_at is not None
+    as_shown = {
+        name: f"{value:%Y-%m-%dT%H:%M}"
+        for name, value in (("opens_at", closed.opens_at), ("closes_at", closed.closes_at))
+    }
+    closes_at = closed.closes_at
+    assert "dates are saved" in _post(judge, page, f"{base}/dates", **as_shown)
+    assert _test_phase(db, tiny).closes_at == closes_at  # sent back as shown: kept
     refused = _post(judge, page, f"{base}/publish")
     assert "has a public board: nothing to publish" in refused
     with_records = judge.get("/admin/audit?action=phase.open").text
