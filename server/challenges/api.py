@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter
 from fastapi import Path as FastAPIPath
 
-from server.accounts.deps import AdminDep, Caller, CallerDep
+from server.accounts.deps import AdminDep, Caller, CallerDep, admin_of
 from server.challenges import service
 from server.challenges.quota import quota_use
 from server.challenges.schemas import (
@@ -128,9 +128,10 @@ def publish_board(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) 
 
 @router.patch("/challenges/{slug}", tags=["admin"])
 def update_challenge(
-    slug: SlugPath, body: ChallengeSettingsIn, admin: AdminDep, db: DBDep
+    slug: SlugPath, body: ChallengeSettingsIn, who: CallerDep, db: DBDep
 ) -> ChallengeOut:
     """Change the challenge's quotas or team mode (admins); audited with old and new values."""
+    admin = admin_of(who)
     service.update_challenge(
         db,
         slug=slug,
@@ -145,9 +146,10 @@ def update_challenge(
 
 @router.patch("/challenges/{slug}/phases/{phase}", tags=["admin"])
 def update_phase(
-    slug: SlugPath, phase: PhasePath, body: PhaseDatesIn, admin: AdminDep, db: DBDep
+    slug: SlugPath, phase: PhasePath, body: PhaseDatesIn, who: CallerDep, db: DBDep
 ) -> ChallengeOut:
     """Move the phase's opening or closing date (admins); null removes it."""
+    admin = admin_of(who)
     given = body.model_fields_set
     service.update_phase(
         db,

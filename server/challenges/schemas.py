@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field
 
@@ -128,14 +128,18 @@ class ChallengeSettingsIn(InBody):
     )
 
 
+Date = Annotated[
+    datetime,
+    # Not strict: a date arrives as the JSON text ISO 8601 writes it (no longer than this).
+    Field(strict=False, json_schema_extra={"maxLength": 64}),
+]
+
+
 class PhaseDatesIn(InBody):
     """A phase's dates; a field left out stays as it is, null removes the date. A date without
     a zone is UTC."""
 
-    # Not strict: a date arrives as the JSON text ISO 8601 writes it.
-    opens_at: datetime | None = Field(
-        default=None, strict=False, description="when submissions open"
-    )
-    closes_at: datetime | None = Field(
-        default=None, strict=False, description="when it closes: after `opens_at`, not in the past"
+    opens_at: Date | None = Field(default=None, description="when submissions open")
+    closes_at: Date | None = Field(
+        default=None, description="when it closes: after `opens_at`, not in the past"
     )

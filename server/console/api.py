@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 
 from server.accounts import service as accounts
-from server.accounts.deps import AdminDep
+from server.accounts.deps import AdminDep, CallerDep, admin_of
 from server.console.schemas import AdminUserOut, DisabledOut, ReasonIn
 from server.console.users import disable_account
 from server.kit.deps import DBDep, Id, PageNo, PerPage
@@ -50,9 +50,10 @@ def list_users(
 
 
 @router.post("/users/{user_id}/disable")
-def disable(user_id: Id, body: ReasonIn, admin: AdminDep, db: DBDep) -> DisabledOut:
+def disable(user_id: Id, body: ReasonIn, who: CallerDep, db: DBDep) -> DisabledOut:
     """Disable an account (a reason is required, and its owner is told it): it cannot log in
     or use its tokens, its sessions end, its queued and running submissions are cancelled."""
+    admin = admin_of(who)
     user = accounts.get_user(db, user_id=user_id)
     cancelled = disable_account(db, user=user, by=admin, reason=body.reason)
     db.commit()
@@ -60,8 +61,9 @@ def disable(user_id: Id, body: ReasonIn, admin: AdminDep, db: DBDep) -> Disabled
 
 
 @router.post("/users/{user_id}/enable")
-def enable(user_id: Id, body: ReasonIn, admin: AdminDep, db: DBDep) -> AdminUserOut:
+def enable(user_id: Id, body: ReasonIn, who: CallerDep, db: DBDep) -> AdminUserOut:
     """Let a disabled account log in and use its tokens again (admins)."""
+    admin = admin_of(who)
     user = accounts.get_user(db, user_id=user_id)
     accounts.enable_user(db, user=user, by=admin, reason=body.reason)
     db.commit()
