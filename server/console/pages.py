@@ -64,7 +64,7 @@ def audit_records(
     db: DBDep,
     challenge: SlugText = "",
     action: Annotated[str, Query(max_length=64)] = "",
-    before: Annotated[int, Query(ge=1, le=2**31 - 1)] | None = None,
+    before: Annotated[int | None, Query(ge=1, le=2**31 - 1)] = None,
 ) -> Response:
     """The audit records, newest first, of a challenge and an action if chosen; a page ends
     with a link to the records before its last."""

@@ -12,8 +12,11 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server import audit
+from server.accounts import service as accounts
 from server.kit.deps import CSRF_HEADER
+from server.kit.settings import Settings
 from server.models import AuditRecord, Challenge, Phase, State, Submission, Transition, User
+from server.registry import service as registry
 from testkit.factories import PASSWORD, make_challenge, make_user, queue_submission, token_for
 
 TINY = "/api/v1/challenges/server-tiny"
@@ -318,3 +321,16 @@ def test_a_cookie_session_needs_the_csrf_header_to_change_settings(
     assert client.patch(TINY, json={"quota_per_day": 4}).status_code == 403
     r = client.patch(TINY, json={"quota_per_day": 4}, headers={CSRF_HEADER: csrf})
     assert r.status_code == 200, r.text
+
+
+def test_the_registry_refuses_a_disabled_accounts_token_saying_why(
+    db: Session, settings: Settings
+) -> None:
+    alice = make_user(db, "alice")
+    _, plaintext = accounts.create_token(db, user=alice, name="podman")
+    db.commit()
+    grantee = registry.authenticate(db, settings=settings, username="alice", password=plaintext)
+    assert grantee.subject == "alice"
+    accounts.disable_user(db, user=alice, by=None, reason="spam")
+    with pytest.raises(registry.RegistryUnauthorized, match="this account is disabled: spam"):
+        registry.authenticate(db, settings=settings, username="alice", password=plaintext)
