@@ -135,15 +135,12 @@ def admin_users(
         rows, total = accounts.list_users(db, search=search, page=page, per_page=per_page)
         for row in rows:
             user = row.user
-            state = [
-                "disabled" if user.disabled_at else "enabled",
-                "verified" if user.email_verified else "unverified",
-                *(["admin"] if user.is_admin else []),
-            ]
-            why = f": {user.disabled_reason}" if user.disabled_at else ""
+            state = ["verified" if user.email_verified else "unverified"]
+            state += ["admin"] if user.is_admin else []
+            disabled = f"\tdisabled: {user.disabled_reason}" if user.disabled_at else ""
             typer.echo(
-                f"{user.id}\t{user.username}\t{user.email}\t{', '.join(state)}{why}\t"
-                f"{row.submissions} submissions"
+                f"{user.id}\t{user.username}\t{user.email}\t{', '.join(state)}\t"
+                f"{row.submissions} submissions{disabled}"
             )
     pages = max(1, -(-total // per_page))
     console.print(f"{total} accounts; page {page} of {pages}")

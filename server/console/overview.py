@@ -65,7 +65,7 @@ def overview(db: DB, *, timeouts: Timeouts, now: datetime) -> list[Group]:
             select(Submission.challenge_id, func.count())
             .where(stuck(timeouts, now))
             .group_by(Submission.challenge_id)
-        ).tuples()
+        ).all()
     )
 
     def summary(challenge: Challenge) -> ChallengeSummary:

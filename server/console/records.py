@@ -13,7 +13,7 @@ from server.models import AuditRecord, Challenge
 
 def challenge_slugs(db: DB) -> dict[int, str]:
     """Every challenge's slug by its id."""
-    return dict(db.execute(select(Challenge.id, Challenge.slug)).tuples())
+    return dict(db.execute(select(Challenge.id, Challenge.slug)).all())
 
 
 def shown(record: AuditRecord, slugs: dict[int, str]) -> dict[str, Any]:
