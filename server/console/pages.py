@@ -46,13 +46,13 @@ def home(request: Request, who: ViewerDep, db: DBDep) -> Response:
     """Every challenge with its tracks, phases and submissions, and the latest audit records."""
     admin_signed_in(request, who)
     now = utcnow()
-    records, slugs = audit.records(db, limit=LATEST_RECORDS), challenge_slugs(db)
+    records = audit.records(db, limit=LATEST_RECORDS)
     return render(
         request,
         who,
         "console/home.html",
         groups=overview(db, timeouts=timeouts_of(services(request).settings), now=now),
-        records=[shown(r, slugs) for r in records],
+        records=shown(db, records),
         now=now,
     )
 
@@ -93,7 +93,7 @@ def audit_records(
         request,
         who,
         "console/audit.html",
-        records=[shown(r, slugs) for r in found],
+        records=shown(db, found),
         filters={"challenge": challenge, "action": action},
         challenges=sorted(slugs.values()),
         actions=actions,
@@ -221,14 +221,14 @@ def save_dates(
 
     def act() -> None:
         opens, closes = _date(form, "opens_at"), _date(form, "closes_at")
-        shown = challenges.get_phase(challenges.get_challenge(db, slug=slug), phase)
+        current = challenges.get_phase(challenges.get_challenge(db, slug=slug), phase)
         challenges.update_phase(
             db,
             slug=slug,
             phase=phase,
             by=admin,
-            opens_at=_change(opens, shown.opens_at),
-            closes_at=_change(closes, shown.closes_at),
+            opens_at=_change(opens, current.opens_at),
+            closes_at=_change(closes, current.closes_at),
         )
 
     return _attempt(request, who, db, slug, act, done="dates", form=form, error_phase=phase)
@@ -252,8 +252,8 @@ def _change(sent: datetime | None, stored: datetime | None) -> challenges.DateCh
     as it was shown is left as it is (a closed phase's past close date among them)."""
     if sent is not None and sent.tzinfo is None:
         sent = sent.replace(tzinfo=UTC)
-    shown = stored.replace(second=0, microsecond=0) if stored is not None else None
-    return challenges.KEEP if sent == shown else sent
+    as_shown = stored.replace(second=0, microsecond=0) if stored is not None else None
+    return challenges.KEEP if sent == as_shown else sent
 
 
 @router.post("/admin/challenges/{slug}/phases/{phase}/open")

@@ -8,7 +8,7 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DB
 
-from server.models import AuditRecord, Challenge
+from server.models import AuditRecord, Challenge, User
 
 
 def challenge_slugs(db: DB) -> dict[int, str]:
@@ -16,14 +16,21 @@ def challenge_slugs(db: DB) -> dict[int, str]:
     return dict(db.execute(select(Challenge.id, Challenge.slug)).all())
 
 
-def shown(record: AuditRecord, slugs: dict[int, str]) -> dict[str, Any]:
-    """A record as the console lists it: the challenge by its slug (of `slugs`, by id), what
-    changed in words."""
-    return {
-        "record": record,
-        "challenge": slugs.get(record.challenge_id) if record.challenge_id else None,
-        "changes": describe(record.detail),
-    }
+def shown(db: DB, records: list[AuditRecord]) -> list[dict[str, Any]]:
+    """Records as the console lists them: the challenge by its slug, an account by its name,
+    what changed in words."""
+    slugs = challenge_slugs(db)
+    users = {r.target_id for r in records if r.target_kind == "user" and r.target_id}
+    names = dict(db.execute(select(User.id, User.username).where(User.id.in_(users))).all())
+    return [
+        {
+            "record": r,
+            "challenge": slugs.get(r.challenge_id) if r.challenge_id else None,
+            "user": names.get(r.target_id) if r.target_kind == "user" and r.target_id else None,
+            "changes": describe(r.detail),
+        }
+        for r in records
+    ]
 
 
 def describe(detail: dict[str, Any] | None) -> list[str]:

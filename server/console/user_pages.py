@@ -75,7 +75,7 @@ def _user_page(
         who,
         "console/user.html",
         row=row,
-        records=[shown(r, {}) for r in records],
+        records=shown(db, records),
         errors=error.fields if error is not None else {},
         message=error.message if error is not None else "",
         form=form or {},

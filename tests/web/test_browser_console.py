@@ -1,13 +1,14 @@
 """The console in Chromium, on one served app: at 1,280 px an organizer changes a quota and
 disables an account through the forms; at 1,280 px and on a 390x844 phone every console page
 keeps its key columns in view (or says the table scrolls), nothing wider than the screen, and
-no console errors."""
+no console errors. Screenshots are kept under $MANIEVAL_ARTEFACTS/web (or the test's tmp dir)."""
 
 from __future__ import annotations
 
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -91,7 +92,7 @@ def _pages(console: Console) -> list[tuple[str, str]]:
 
 @pytest.mark.parametrize("viewport", [DESKTOP, PHONE], ids=["desktop", "phone"])
 def test_console_pages_fit_the_screen_with_key_columns_in_view(
-    console: Console, viewport: dict[str, int]
+    console: Console, viewport: dict[str, int], artefacts: Path
 ) -> None:
     require_chromium()
     from playwright.sync_api import expect, sync_playwright
@@ -111,6 +112,8 @@ def test_console_pages_fit_the_screen_with_key_columns_in_view(
             assert _outside(page, key) == [], path
             assert _hidden_overflow(page) == [], path
             assert _page_width(page) <= viewport["width"], path
+            name = re.sub(r"\W+", "-", path.strip("/")).strip("-")
+            page.screenshot(path=artefacts / f"{name}-{viewport['width']}.png", full_page=True)
         chromium.close()
     assert problems == [], problems
 
