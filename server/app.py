@@ -22,6 +22,9 @@ from server.accounts import pages as accounts_pages
 from server.accounts.deps import error_page_viewer
 from server.challenges import api as challenges_api
 from server.challenges import pages as challenges_pages
+from server.console import api as console_api
+from server.console import pages as console_pages
+from server.console import user_pages as console_user_pages
 from server.downloads import api as downloads_api
 from server.kit import pages
 from server.kit.apidocs import mount_api_docs
@@ -139,6 +142,7 @@ def create_app(
     app.include_router(registry_api.public)
     app.include_router(teams_api.router)
     app.include_router(downloads_api.router)
+    app.include_router(console_api.router)
     pages.install(
         app,
         [
@@ -152,6 +156,8 @@ def create_app(
             submissions_pages.router,
             events.router,
             teams_pages.router,
+            console_pages.router,
+            console_user_pages.router,
         ],
     )
     install_error_handlers(app, viewer=error_page_viewer)

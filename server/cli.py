@@ -1,6 +1,6 @@
-"""Operator commands of the server: `manieval db upgrade`, `manieval admin create`,
-`manieval challenge load`, `challenge verify`, `challenge packages`, `challenge teams` and
-`challenge reevaluate`
+"""Operator commands of the server: `manieval db upgrade`, `manieval admin create|users|
+disable|enable|verify`, `manieval challenge load`, `challenge verify`, `challenge packages`,
+`challenge teams`, `challenge set`, `challenge phase` and `challenge reevaluate`
 (`manieval serve` and `demo` compose
 it with the worker: `manieval/serve.py`)."""
 
@@ -28,6 +28,7 @@ from server.kit.errors import AppError
 from server.kit.settings import Settings
 
 if TYPE_CHECKING:
+    from server.challenges.service import DateChange
     from server.models import Phase
 
 console = Console(stderr=True, soft_wrap=True)
@@ -64,6 +65,8 @@ def _transaction(s: Settings | None = None) -> Iterator[Session]:
             yield db
     except AppError as exc:
         console.print(f"[red]error:[/] {exc.message}")
+        for field, problem in exc.fields.items():
+            console.print(f"  {field}: {problem}", highlight=False)
         raise typer.Exit(1) from None
 
 
@@ -117,6 +120,72 @@ def admin_create(
             console.print(f"  {field}: {problem}")
         raise typer.Exit(1) from None
     console.print(f"administrator {username} created")
+
+
+@admin_app.command("users")
+def admin_users(
+    search: Annotated[str, typer.Argument(help="Part of a user name or address.")] = "",
+    page: Annotated[int, typer.Option(min=1)] = 1,
+) -> None:
+    """List accounts, newest first: their state and submissions."""
+    from server.accounts import service as accounts
+
+    per_page = 50
+    with _transaction() as db:
+        rows, total = accounts.list_users(db, search=search, page=page, per_page=per_page)
+        for row in rows:
+            user = row.user
+            state = ["verified" if user.email_verified else "unverified"]
+            state += ["admin"] if user.is_admin else []
+            disabled = f"\tdisabled: {user.disabled_reason}" if user.disabled_at else ""
+            typer.echo(
+                f"{user.id}\t{user.username}\t{user.email}\t{', '.join(state)}\t"
+                f"{row.submissions} submissions{disabled}"
+            )
+    pages = max(1, -(-total // per_page))
+    console.print(f"{total} accounts; page {page} of {pages}")
+
+
+@admin_app.command("disable")
+def admin_disable(
+    username: Annotated[str, typer.Argument(help="The account's user name.")],
+    reason: Annotated[str, typer.Option(help="Why: its owner is shown it.")],
+) -> None:
+    """Disable an account: it can no longer log in or use its tokens, its sessions end, and
+    its queued and running submissions are cancelled."""
+    from server.accounts.service import named_user
+    from server.console.users import disable_account
+
+    with _transaction() as db:
+        cancelled = disable_account(
+            db, user=named_user(db, username=username), by=None, reason=reason
+        )
+    console.print(f"{username} is disabled; {len(cancelled)} submissions cancelled")
+
+
+@admin_app.command("enable")
+def admin_enable(
+    username: Annotated[str, typer.Argument(help="The account's user name.")],
+    reason: Annotated[str, typer.Option(help="Why (optional).")] = "",
+) -> None:
+    """Let a disabled account log in and use its tokens again."""
+    from server.accounts.service import enable_user, named_user
+
+    with _transaction() as db:
+        enable_user(db, user=named_user(db, username=username), by=None, reason=reason)
+    console.print(f"{username} is enabled")
+
+
+@admin_app.command("verify")
+def admin_verify(
+    username: Annotated[str, typer.Argument(help="The account's user name.")],
+) -> None:
+    """Mark an account's email address verified."""
+    from server.accounts.service import mark_verified, named_user
+
+    with _transaction() as db:
+        mark_verified(db, user=named_user(db, username=username), by=None)
+    console.print(f"the address of {username} is verified")
 
 
 def _dates(values: list[str] | None, option: str) -> dict[str, datetime]:
@@ -407,6 +476,61 @@ def challenge_teams(
         set_team_mode(db, slug=slug, on=mode == "on")
     counted = "per team" if mode == "on" else "per user"
     console.print(f"challenge {slug}: quotas and leaderboard rows count {counted}")
+
+
+@challenge_app.command("set")
+def challenge_set(
+    slug: Annotated[str, typer.Argument(help="The challenge.")],
+    quota_per_day: Annotated[int | None, typer.Option(help="Submissions a day.")] = None,
+    quota_concurrent: Annotated[int | None, typer.Option(help="Submissions at once.")] = None,
+) -> None:
+    """Change a challenge's quotas (what is not given stays as it is)."""
+    from server.challenges.service import update_challenge
+
+    with _transaction() as db:
+        challenge = update_challenge(
+            db,
+            slug=slug,
+            by=None,
+            quota_per_day=quota_per_day,
+            quota_concurrent=quota_concurrent,
+        )
+        per_day, concurrent = challenge.quota_per_day, challenge.quota_concurrent
+    console.print(f"challenge {slug}: {per_day} submissions a day, {concurrent} at once")
+
+
+def _date_option(value: str | None, option: str) -> DateChange:
+    from server.challenges.service import KEEP
+
+    if value is None:
+        return KEEP
+    if value.lower() == "none":
+        return None
+    try:
+        return datetime.fromisoformat(value)
+    except ValueError:
+        console.print(f"[red]error:[/] {option} takes an ISO date (UTC unless it says), or none")
+        raise typer.Exit(2) from None
+
+
+@challenge_app.command("phase")
+def challenge_phase(
+    slug: Annotated[str, typer.Argument(help="The challenge.")],
+    phase: Annotated[str, typer.Argument(help="The phase.")],
+    opens: Annotated[str | None, typer.Option(help="ISO date it opens; none: always.")] = None,
+    closes: Annotated[str | None, typer.Option(help="ISO date it closes; none: never.")] = None,
+) -> None:
+    """Move a phase's opening or closing date (closing now is `challenge close`)."""
+    from server.challenges.service import update_phase
+
+    opens_at, closes_at = _date_option(opens, "--opens"), _date_option(closes, "--closes")
+    with _transaction() as db:
+        found = update_phase(
+            db, slug=slug, phase=phase, by=None, opens_at=opens_at, closes_at=closes_at
+        )
+        opens_when = f"{found.opens_at:%Y-%m-%d %H:%M} UTC" if found.opens_at else "always"
+        closes_when = f"{found.closes_at:%Y-%m-%d %H:%M} UTC" if found.closes_at else "never"
+    console.print(f"challenge {slug}: phase {phase} opens {opens_when}, closes {closes_when}")
 
 
 @challenge_app.command("close")

@@ -79,6 +79,12 @@ UserDep = Annotated[User, Depends(require_user)]
 AdminDep = Annotated[User, Depends(require_admin)]
 
 
+def admin_of(who: Caller) -> User:
+    """The caller if an administrator (401, 403 otherwise), asked inside a route whose body is
+    checked first: a malformed body is a 422 whoever sends it, as on every other route."""
+    return require_admin(require_user(who))
+
+
 def viewer(request: Request, db: DBDep) -> Viewer:
     """The viewer from the session cookie (API tokens are for programs, not pages)."""
     session = accounts.session_for(db, cookie=request.cookies.get(SESSION_COOKIE))

@@ -1,4 +1,6 @@
-"""Accounts: registration, password login, browser sessions and API tokens."""
+"""Accounts: registration, password login, browser sessions and API tokens, and what an
+administrator does to an account (disable, enable, verify its address, grant or revoke admin
+rights; each leaves an audit record)."""
 
 from __future__ import annotations
 
@@ -10,10 +12,19 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DB
 from sqlalchemy.orm import joinedload
 
+from server import audit
 from server.kit import security
-from server.kit.errors import AppError, Conflict, Invalid, RateLimited, Unauthorized
+from server.kit.errors import (
+    AppError,
+    Conflict,
+    Forbidden,
+    Invalid,
+    NotFound,
+    RateLimited,
+    Unauthorized,
+)
 from server.kit.ratelimit import Rate, RateLimiter
-from server.models import ApiToken, Session, User, utcnow
+from server.models import ApiToken, Session, Submission, User, utcnow
 
 MAX_TOKENS_PER_USER = 50
 
@@ -214,7 +225,20 @@ def password_login(
         for key, rate in buckets:
             throttle.limiter.hit(key, rate)
         raise Unauthorized("wrong username, email or password")
+    refuse_disabled(user)  # only to whoever knows the password: it tells the account exists
     return user
+
+
+class AccountDisabled(Forbidden):
+    """An administrator disabled the account: it neither logs in nor uses its API tokens."""
+
+    code = "account_disabled"
+
+
+def refuse_disabled(user: User) -> None:
+    """AccountDisabled, with the administrator's reason, if the account is disabled."""
+    if user.disabled_at is not None:
+        raise AccountDisabled(f"this account is disabled: {user.disabled_reason or 'no reason'}")
 
 
 def set_password(
@@ -257,7 +281,7 @@ def session_for(db: DB, *, cookie: str | None) -> Session | None:
     )
     if found is None or not security.secrets_equal(found.digest, digest):
         return None
-    if found.expires_at <= utcnow():
+    if found.expires_at <= utcnow() or found.user.disabled_at is not None:
         return None
     return found
 
@@ -290,7 +314,8 @@ def create_token(db: DB, *, user: User, name: str) -> tuple[ApiToken, str]:
 
 
 def user_for_token(db: DB, *, plaintext: str, now: datetime | None = None) -> User | None:
-    """The owner of a live API token, or None; records when the token was last used."""
+    """The owner of a live API token, or None (AccountDisabled for a disabled owner's);
+    records when the token was last used."""
     if (parsed := security.parse_secret(plaintext, "token")) is None:
         return None
     prefix, digest = parsed
@@ -301,6 +326,7 @@ def user_for_token(db: DB, *, plaintext: str, now: datetime | None = None) -> Us
         return None
     if not security.secrets_equal(token.digest, digest):
         return None
+    refuse_disabled(token.user)
     now = now or utcnow()
     # Record use at most once a minute: a CLI polling status must not write on every call.
     if token.last_used_at is None or now - token.last_used_at > timedelta(minutes=1):
@@ -323,3 +349,154 @@ def revoke_token(db: DB, *, user: User, token_id: int) -> ApiToken | None:
     if token.revoked_at is None:
         token.revoked_at = utcnow()
     return token
+
+
+# Administration ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class UserRow:
+    """An account as the administrators' list shows it."""
+
+    user: User
+    submissions: int
+    """The participant's own submissions (re-evaluations of them not counted)."""
+
+
+_OWN_SUBMISSION = Submission.reevaluation_of.is_(None)
+"""A participant's own submission: not a re-evaluation of one (docs/server.md, Re-evaluation)."""
+
+
+def user_row(db: DB, *, user: User) -> UserRow:
+    """The account with its submission count."""
+    n = db.scalar(
+        select(func.count())
+        .select_from(Submission)
+        .where(Submission.user_id == user.id, _OWN_SUBMISSION)
+    )
+    return UserRow(user=user, submissions=n or 0)
+
+
+def list_users(db: DB, *, search: str = "", page: int, per_page: int) -> tuple[list[UserRow], int]:
+    """One page of accounts, newest first, whose name or address contains `search` (any
+    case), with their submission counts; and how many match."""
+    query = select(User)
+    if needle := search.strip().lower():
+        escaped = needle.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+        pattern = f"%{escaped}%"
+        query = query.where(
+            func.lower(User.username).like(pattern, escape="\\")
+            | User.email.like(pattern, escape="\\")
+        )
+    total = db.scalar(select(func.count()).select_from(query.subquery())) or 0
+    counts = (
+        select(Submission.user_id, func.count().label("n"))
+        .where(_OWN_SUBMISSION)
+        .group_by(Submission.user_id)
+        .subquery()
+    )
+    rows = db.execute(
+        query.add_columns(func.coalesce(counts.c.n, 0))
+        .outerjoin(counts, counts.c.user_id == User.id)
+        .order_by(User.id.desc())
+        .offset((page - 1) * per_page)
+        .limit(per_page)
+    ).all()
+    return [UserRow(user=user, submissions=int(n)) for user, n in rows], total
+
+
+def get_user(db: DB, *, user_id: int) -> User:
+    """The account with this id, or NotFound."""
+    user = db.get(User, user_id)
+    if user is None:
+        raise NotFound(f"no user {user_id}")
+    return user
+
+
+def named_user(db: DB, *, username: str) -> User:
+    """The account with this name (any case), or NotFound."""
+    user = user_named(db, username=username)
+    if user is None:
+        raise NotFound(f"no user {username!r}")
+    return user
+
+
+def _not_yourself(user: User, by: User | None, what: str) -> None:
+    if by is not None and by.id == user.id:
+        raise Forbidden(f"you cannot {what} your own account: ask another administrator")
+
+
+def disable_user(
+    db: DB, *, user: User, by: User | None, reason: str | None, now: datetime | None = None
+) -> User:
+    """Disable an account (`by` an administrator, None: the command line): it can no longer log
+    in or use its tokens, and its browser sessions end. Its unfinished submissions are the
+    caller's to cancel (server/console/users.py), from the floor that may."""
+    why = audit.reason_of(reason, required=True)
+    _not_yourself(user, by, "disable")
+    if user.disabled_at is not None:
+        raise Conflict(f"{user.username} is disabled already")
+    now = now or utcnow()
+    user.disabled_at, user.disabled_reason = now, why
+    db.execute(update(Session).where(Session.user_id == user.id).values(expires_at=now))
+    audit.record(
+        db, by=by, action="user.disable", target_kind="user", target_id=user.id, reason=why
+    )
+    db.flush()
+    return user
+
+
+def enable_user(db: DB, *, user: User, by: User | None, reason: str | None = None) -> User:
+    """Let a disabled account log in and use its tokens again."""
+    why = audit.reason_of(reason, required=False)
+    if user.disabled_at is None:
+        raise Conflict(f"{user.username} is not disabled")
+    detail = {"disabled_at": user.disabled_at.isoformat(), "disabled_reason": user.disabled_reason}
+    user.disabled_at, user.disabled_reason = None, None
+    audit.record(
+        db,
+        by=by,
+        action="user.enable",
+        target_kind="user",
+        target_id=user.id,
+        reason=why,
+        detail=detail,
+    )
+    db.flush()
+    return user
+
+
+def mark_verified(db: DB, *, user: User, by: User | None, now: datetime | None = None) -> User:
+    """Mark the account's address verified, as following the mailed link would."""
+    if user.email_verified_at is not None:
+        raise Conflict(f"the address of {user.username} is verified already")
+    user.email_verified_at = now or utcnow()
+    audit.record(
+        db,
+        by=by,
+        action="user.verify",
+        target_kind="user",
+        target_id=user.id,
+        detail={"email": user.email},
+    )
+    db.flush()
+    return user
+
+
+def set_admin(db: DB, *, user: User, by: User | None, admin: bool) -> User:
+    """Grant (or revoke) an account's administrator rights; never one's own."""
+    _not_yourself(user, by, "grant or revoke administrator rights of")
+    if user.is_admin == admin:
+        already = "an administrator" if admin else "not an administrator"
+        raise Conflict(f"{user.username} is {already} already")
+    user.is_admin = admin
+    audit.record(
+        db,
+        by=by,
+        action="user.grant_admin" if admin else "user.revoke_admin",
+        target_kind="user",
+        target_id=user.id,
+        detail={"old": {"is_admin": not admin}, "new": {"is_admin": admin}},
+    )
+    db.flush()
+    return user

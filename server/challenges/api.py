@@ -7,13 +7,15 @@ from typing import Annotated
 from fastapi import APIRouter
 from fastapi import Path as FastAPIPath
 
-from server.accounts.deps import AdminDep, Caller, CallerDep
+from server.accounts.deps import AdminDep, Caller, CallerDep, admin_of
 from server.challenges import service
 from server.challenges.quota import quota_use
 from server.challenges.schemas import (
     ChallengeOut,
+    ChallengeSettingsIn,
     ChallengeSummary,
     ConditionOut,
+    PhaseDatesIn,
     PhaseOut,
     QuotaOut,
     TaskOut,
@@ -121,6 +123,51 @@ def close_phase(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) ->
 def publish_board(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) -> ChallengeOut:
     """Show the phase's hidden board to everyone (admins)."""
     service.publish_board(db, slug=slug, phase=phase)
+    db.commit()
+    return challenge_detail(slug, Caller(user=admin, session=None), db)
+
+
+@router.patch("/challenges/{slug}", tags=["admin"])
+def update_challenge(
+    slug: SlugPath, body: ChallengeSettingsIn, who: CallerDep, db: DBDep
+) -> ChallengeOut:
+    """Change the challenge's quotas or team mode (admins); audited with old and new values."""
+    admin = admin_of(who)
+    service.update_challenge(
+        db,
+        slug=slug,
+        by=admin,
+        quota_per_day=body.quota_per_day,
+        quota_concurrent=body.quota_concurrent,
+        team_mode=body.team_mode,
+    )
+    db.commit()
+    return challenge_detail(slug, Caller(user=admin, session=None), db)
+
+
+@router.patch("/challenges/{slug}/phases/{phase}", tags=["admin"])
+def update_phase(
+    slug: SlugPath, phase: PhasePath, body: PhaseDatesIn, who: CallerDep, db: DBDep
+) -> ChallengeOut:
+    """Move the phase's opening or closing date (admins); null removes it."""
+    admin = admin_of(who)
+    given = body.model_fields_set
+    service.update_phase(
+        db,
+        slug=slug,
+        phase=phase,
+        by=admin,
+        opens_at=body.opens_at if "opens_at" in given else service.KEEP,
+        closes_at=body.closes_at if "closes_at" in given else service.KEEP,
+    )
+    db.commit()
+    return challenge_detail(slug, Caller(user=admin, session=None), db)
+
+
+@router.post("/challenges/{slug}/phases/{phase}/open", tags=["admin"])
+def open_phase(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) -> ChallengeOut:
+    """Open the phase now (admins); a closed one opens again, with no close date."""
+    service.open_phase(db, slug=slug, phase=phase, by=admin)
     db.commit()
     return challenge_detail(slug, Caller(user=admin, session=None), db)
 

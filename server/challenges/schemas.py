@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field
 
 from evaluator.verification import VerificationReport
+from server.kit.schemas import InBody
 
 
 class PhaseOut(BaseModel):
@@ -114,4 +115,36 @@ class ChallengeOut(ChallengeSummary):
         default=None,
         description="The evaluator image its Kubernetes Jobs run, pinned by digest (admins "
         "only; null for others, and where the workers' own runs it)",
+    )
+
+
+class ChallengeSettingsIn(InBody):
+    """What an organizer changes on a challenge; a field left out stays as it is."""
+
+    quota_per_day: int | None = Field(
+        default=None, description="submissions a participant (a team) may make a day, 1 or more"
+    )
+    quota_concurrent: int | None = Field(
+        default=None, description="submissions a participant (a team) may have queued or running"
+    )
+    team_mode: bool | None = Field(
+        default=None,
+        description="count quotas and leaderboard rows per team; a change recomputes the boards",
+    )
+
+
+Date = Annotated[
+    datetime,
+    # Not strict: a date arrives as the JSON text ISO 8601 writes it (no longer than this).
+    Field(strict=False, json_schema_extra={"maxLength": 64}),
+]
+
+
+class PhaseDatesIn(InBody):
+    """A phase's dates; a field left out stays as it is, null removes the date. A date without
+    a zone is UTC."""
+
+    opens_at: Date | None = Field(default=None, description="when submissions open")
+    closes_at: Date | None = Field(
+        default=None, description="when it closes: after `opens_at`, not in the past"
     )

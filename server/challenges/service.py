@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import enum
 import hashlib
 import hmac
 import json
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any, Literal
 
 import yaml
 from sqlalchemy import func, select
@@ -17,11 +19,12 @@ from sqlalchemy.orm import selectinload
 from evaluator import packages
 from evaluator.suite import Phase as SuitePhase
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
+from server import audit
 from server.challenges.evaluator_image import chosen_evaluator_image
 from server.challenges.tracks import join_group
 from server.challenges.verification import Unverified, suite_verification
 from server.kit.errors import Conflict, Invalid, NotFound
-from server.models import Challenge, Phase, utcnow
+from server.models import Challenge, Phase, User, utcnow
 from server.standings.entries import rebuild
 
 
@@ -196,11 +199,187 @@ def set_team_mode(db: DB, *, slug: str, on: bool) -> Challenge:
     """Count the challenge's quotas and leaderboard rows per team (on) or per user (off);
     its boards are recomputed at once (docs/server.md, Teams)."""
     challenge = get_challenge(db, slug=slug)
+    _switch_team_mode(db, challenge, on=on)
+    return challenge
+
+
+def _switch_team_mode(db: DB, challenge: Challenge, *, on: bool) -> None:
     if challenge.team_mode != on:
         challenge.team_mode = on
         db.flush()
         rebuild(db, challenge_id=challenge.id)
+
+
+# Settings an organizer changes on a running challenge (the console, the API, the CLI) ----------
+
+QUOTA_MAX = 10_000
+"""The largest quota accepted: more is no limit, and the column is a 32-bit integer."""
+
+
+class _Keep(enum.Enum):
+    KEEP = "keep"
+
+
+KEEP: Literal[_Keep.KEEP] = _Keep.KEEP
+"""A date left as it is (None clears it)."""
+DateChange = datetime | None | Literal[_Keep.KEEP]
+
+
+def update_challenge(
+    db: DB,
+    *,
+    slug: str,
+    by: User | None,
+    quota_per_day: int | None = None,
+    quota_concurrent: int | None = None,
+    team_mode: bool | None = None,
+) -> Challenge:
+    """Change the challenge's quotas or team mode (None: as it is); a change of team mode
+    recomputes its boards. Audited with the old and new values of what changed."""
+    problems = {
+        name: f"a whole number from 1 to {QUOTA_MAX}"
+        for name, value in (
+            ("quota_per_day", quota_per_day),
+            ("quota_concurrent", quota_concurrent),
+        )
+        if value is not None and not 1 <= value <= QUOTA_MAX
+    }
+    if problems:
+        raise Invalid("the challenge's settings are not valid", fields=problems)
+    challenge = get_challenge(db, slug=slug)
+    before = _settings_of(challenge)
+    if quota_per_day is not None:
+        challenge.quota_per_day = quota_per_day
+    if quota_concurrent is not None:
+        challenge.quota_concurrent = quota_concurrent
+    if team_mode is not None:
+        _switch_team_mode(db, challenge, on=team_mode)
+    _record_change(
+        db,
+        by=by,
+        action="challenge.settings",
+        target=challenge,
+        before=before,
+        after=_settings_of(challenge),
+    )
     return challenge
+
+
+def _settings_of(challenge: Challenge) -> dict[str, Any]:
+    return {
+        "quota_per_day": challenge.quota_per_day,
+        "quota_concurrent": challenge.quota_concurrent,
+        "team_mode": challenge.team_mode,
+    }
+
+
+def _record_change(
+    db: DB,
+    *,
+    by: User | None,
+    action: str,
+    target: Challenge | Phase,
+    before: dict[str, Any],
+    after: dict[str, Any],
+) -> None:
+    """The audit record of a change of settings, with the old and new value of each that
+    changed; nothing when none did."""
+    changed = [name for name in before if before[name] != after[name]]
+    if not changed:
+        return
+    if isinstance(target, Phase):
+        kind, challenge_id, which = "phase", target.challenge_id, {"phase": target.name}
+    else:
+        kind, challenge_id, which = "challenge", target.id, {}
+    audit.record(
+        db,
+        by=by,
+        action=action,
+        target_kind=kind,
+        target_id=target.id,
+        challenge_id=challenge_id,
+        detail={
+            **which,
+            "old": {name: before[name] for name in changed},
+            "new": {name: after[name] for name in changed},
+        },
+    )
+    db.flush()
+
+
+def update_phase(
+    db: DB,
+    *,
+    slug: str,
+    phase: str,
+    by: User | None,
+    opens_at: DateChange = KEEP,
+    closes_at: DateChange = KEEP,
+    now: datetime | None = None,
+) -> Phase:
+    """Move the phase's opening or closing date (None: no such date). Holds the phase's row as
+    a close does, so a submission racing the change goes by the dates before it or after it.
+    A new close date must be after the opening and not in the past: closing now is
+    `close_phase`'s."""
+    found = get_phase(get_challenge(db, slug=slug), phase)
+    locked = lock_phase(db, phase_id=found.id, write=True)
+    now = now or utcnow()
+    before = _dates_of(locked)
+    opens = locked.opens_at if opens_at is KEEP else _utc(opens_at, "opens_at")
+    closes = locked.closes_at if closes_at is KEEP else _utc(closes_at, "closes_at")
+    problems: dict[str, str] = {}
+    if closes is not None and closes != locked.closes_at and closes <= now:
+        problems["closes_at"] = "is in the past: to close the phase now, use close now"
+    if opens is not None and closes is not None and closes <= opens:
+        problems["closes_at"] = "must be after the opening date"
+    if problems:
+        raise Invalid(f"phase {phase!r} of {slug!r}: the dates are not valid", fields=problems)
+    locked.opens_at, locked.closes_at = opens, closes
+    _record_change(
+        db, by=by, action="phase.settings", target=locked, before=before, after=_dates_of(locked)
+    )
+    return locked
+
+
+def open_phase(
+    db: DB, *, slug: str, phase: str, by: User | None, now: datetime | None = None
+) -> Phase:
+    """Open the phase now: one not yet open opens; a closed one opens again, with no close date
+    (set one after). Holds the phase's row as a close does."""
+    found = get_phase(get_challenge(db, slug=slug), phase)
+    locked = lock_phase(db, phase_id=found.id, write=True)
+    now = now or utcnow()
+    if locked.is_open(now):
+        raise Conflict(f"phase {phase!r} of {slug!r} is open already")
+    before = _dates_of(locked)
+    if not locked.has_opened(now):
+        locked.opens_at = now
+    if locked.closes_at is not None and locked.closes_at <= now:
+        locked.closes_at = None
+    _record_change(
+        db, by=by, action="phase.open", target=locked, before=before, after=_dates_of(locked)
+    )
+    return locked
+
+
+def _dates_of(phase: Phase) -> dict[str, str | None]:
+    return {
+        "opens_at": phase.opens_at.isoformat() if phase.opens_at else None,
+        "closes_at": phase.closes_at.isoformat() if phase.closes_at else None,
+    }
+
+
+def _utc(value: datetime | None, name: str) -> datetime | None:
+    """`value` in UTC (a date without a zone is read as UTC), or Invalid for `name`."""
+    if value is None:
+        return None
+    try:
+        found = value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+    except OverflowError:
+        found = None
+    if found is None or not 1970 <= found.year <= 9000:
+        raise Invalid(f"{name} is out of range", fields={name: "a date from 1970 to 9000"})
+    return found
 
 
 def try_out(suite: Suite, options: ChallengeOptions) -> tuple[Suite, list[str]]:

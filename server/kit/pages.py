@@ -200,6 +200,15 @@ def signed_in(request: Request, who: Viewer) -> User:
     return who.user
 
 
+def admin_signed_in(request: Request, who: Viewer) -> User:
+    """The viewer's account if it is an administrator's: else a trip to the login page (nobody
+    logged in) or 403."""
+    user = signed_in(request, who)
+    if not user.is_admin:
+        raise Forbidden("admins only")
+    return user
+
+
 def login_redirect(_request: Request, exc: Exception) -> Response:
     assert isinstance(exc, LoginRequired)
     return redirect(f"/login?{urlencode({'next': exc.next_path})}")

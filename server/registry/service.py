@@ -112,7 +112,10 @@ def authenticate(db: DB, *, settings: Settings, username: str, password: str) ->
         if secrets.compare_digest(password.encode(), pull_password.encode()):
             return Grantee(subject=settings.registry_pull_user, namespace=None, pull_anywhere=True)
         raise RegistryUnauthorized("wrong user name or password for the registry")
-    user = accounts.user_for_token(db, plaintext=password)
+    try:
+        user = accounts.user_for_token(db, plaintext=password)
+    except accounts.AccountDisabled as exc:
+        raise RegistryUnauthorized(exc.message) from None
     if user is None or user.username.lower() != username.lower():
         raise RegistryUnauthorized(
             "log in to the registry with your ManiEval user name and an API token "

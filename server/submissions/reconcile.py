@@ -19,10 +19,11 @@ import logging
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
-from sqlalchemy import func, select
+from sqlalchemy import ColumnElement, func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from internal_api.schemas import AttemptRef, ReconcileOut
+from server.kit.settings import Settings
 from server.models import ACTIVE_STATES, Cause, State, Submission, Transition, utcnow
 from server.submissions.outbox import Dispatcher, WorkQueue
 from server.submissions.states import new_attempt, transition
@@ -53,10 +54,24 @@ class Timeouts:
     """A queued submission untouched this long gets a fresh wake-up message."""
 
 
-def _silent_running(timeouts: Timeouts, now: datetime):  # type: ignore[no-untyped-def]
+def timeouts_of(settings: Settings) -> Timeouts:
+    """The timeouts this server's settings give (`MANIEVAL_HEARTBEAT_TIMEOUT_S`)."""
+    return Timeouts(heartbeat=timedelta(seconds=settings.heartbeat_timeout_s))
+
+
+def _silent_running(timeouts: Timeouts, now: datetime) -> ColumnElement[bool]:
     return (Submission.state == State.RUNNING) & (
         func.coalesce(Submission.heartbeat_at, Submission.updated_at) < now - timeouts.heartbeat
     )
+
+
+def stuck(timeouts: Timeouts, now: datetime) -> ColumnElement[bool]:
+    """Submissions stuck at `now`: running without a report for the heartbeat timeout, or
+    launching for longer than the launch timeout. The next pass ends them as lost."""
+    stale_launch = (Submission.state == State.LAUNCHING) & (
+        Submission.updated_at < now - timeouts.launch
+    )
+    return _silent_running(timeouts, now) | stale_launch
 
 
 def silent(
@@ -82,11 +97,7 @@ def reconcile(
     out = ReconcileOut()
     with sessions() as db:
         _time_out(db, now, out)
-        stale_launch = (Submission.state == State.LAUNCHING) & (
-            Submission.updated_at < now - timeouts.launch
-        )
-        stale = _silent_running(timeouts, now) | stale_launch
-        for s in db.scalars(select(Submission).where(stale)):
+        for s in db.scalars(select(Submission).where(stuck(timeouts, now))):
             requeued = end_lost(db, s, cause=Cause.WORKER_LOST, now=now)
             if requeued is not None:
                 out.lost.append(s.id)

@@ -300,15 +300,18 @@ def list_submissions(
     per_page: int,
     user: User | None = None,
     challenge: Challenge | None = None,
+    phase: str | None = None,
     state: State | None = None,
 ) -> tuple[list[Submission], int]:
     """One page of submissions with what they are shown with, newest first (a user's, a
-    challenge's, in a state), and how many match."""
+    challenge's, of phases of that name, in a state), and how many match."""
     query = select(Submission)
     if user is not None:
         query = query.where(Submission.user_id == user.id)
     if challenge is not None:
         query = query.where(Submission.challenge_id == challenge.id)
+    if phase is not None:
+        query = query.where(Submission.phase_id.in_(select(Phase.id).where(Phase.name == phase)))
     if state is not None:
         query = query.where(Submission.state == state)
     total = db.scalar(select(func.count()).select_from(query.subquery())) or 0

@@ -5,20 +5,22 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Annotated
+from urllib.parse import urlencode
 
 from fastapi import APIRouter, Form, Query, Request
 from fastapi.responses import Response
 from sqlalchemy.orm import Session as DB
 
 from server.accounts.deps import PostedDep, ViewerDep
+from server.accounts.service import user_named
 from server.challenges.quota import quota_use
-from server.challenges.service import get_challenge, get_phase, policy_refusal
+from server.challenges.service import all_challenges, get_challenge, get_phase, policy_refusal
 from server.challenges.tracks import get_track, tracks_of
 from server.downloads.artifacts import TEMPLATE_DIR, TEMPLATE_FILE
 from server.kit.deps import DBDep, limit
-from server.kit.errors import AppError, Forbidden, Invalid
-from server.kit.pages import Viewer, redirect, render, signed_in
-from server.models import Challenge, State, User, utcnow
+from server.kit.errors import AppError, Invalid
+from server.kit.pages import Viewer, admin_signed_in, redirect, render, signed_in
+from server.models import Challenge, State, Submission, User, utcnow
 from server.registry.tokens import namespace_for
 from server.submissions.deps import services
 from server.submissions.method import Method
@@ -215,10 +217,13 @@ def my_submissions(request: Request, who: ViewerDep, db: DBDep, page: PageNo = 1
         total=total,
         page=page,
         pages=max(1, -(-total // PER_PAGE)),
-        state="",
-        states=[],
+        pager_base="/submissions?",
+        filters=None,
         show_owner=False,
     )
+
+
+Filter = Annotated[str, Query(max_length=64)]
 
 
 @router.get("/admin/submissions")
@@ -228,13 +233,35 @@ def all_submissions(
     db: DBDep,
     page: PageNo = 1,
     state: Annotated[str, Query(max_length=16)] = "",
+    user: Filter = "",
+    challenge: Filter = "",
+    phase: Filter = "",
 ) -> Response:
-    """Every submission, for administrators: where re-run, hide and baseline are one click."""
-    user: User = signed_in(request, who)
-    if not user.is_admin:
-        raise Forbidden("admins only")
+    """Every submission, for administrators, by owner, challenge, phase and state (any of
+    them together, kept in the address): where re-run, hide and baseline are one click."""
+    admin_signed_in(request, who)
+    filters = {"user": user.strip(), "challenge": challenge, "phase": phase, "state": state}
+    known = all_challenges(db)
+    chosen = next((c for c in known if c.slug == challenge), None)
+    owner = user_named(db, username=filters["user"]) if filters["user"] else None
+    unknown = [
+        f"no user named {filters['user']!r}" if filters["user"] and owner is None else "",
+        f"no challenge {challenge!r}" if challenge and chosen is None else "",
+    ]
     shown = State(state) if state in {s.value for s in State} else None
-    rows, total = list_submissions(db, state=shown, page=page, per_page=PER_PAGE)
+    rows: list[Submission] = []
+    total = 0
+    if not any(unknown):
+        rows, total = list_submissions(
+            db,
+            user=owner,
+            challenge=chosen,
+            phase=phase or None,
+            state=shown,
+            page=page,
+            per_page=PER_PAGE,
+        )
+    kept = {name: value for name, value in filters.items() if value}
     return render(
         request,
         who,
@@ -244,7 +271,11 @@ def all_submissions(
         total=total,
         page=page,
         pages=max(1, -(-total // PER_PAGE)),
-        state=shown.value if shown is not None else "",
+        pager_base="/admin/submissions?" + (urlencode(kept) + "&" if kept else ""),
+        filters=filters,
+        unknown="; ".join(u for u in unknown if u),
+        challenges=[c.slug for c in known],
+        phases=sorted({p.name for c in known for p in c.phases}),
         states=[s.value for s in State],
         show_owner=True,
     )
