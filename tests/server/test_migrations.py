@@ -44,6 +44,7 @@ def test_upgrade_check_downgrade_upgrade(engine: Engine) -> None:
     finally:
         fresh.dispose()
     command.upgrade(config, "head")
+    engine.dispose()  # every type was made anew: no connection keeps statements on the old ones
     fresh = make_engine(url)
     try:
         assert set(Base.metadata.tables) <= set(inspect(fresh).get_table_names())
@@ -250,5 +251,8 @@ def test_0017_adds_the_evaluator_image_in_place_and_going_back_drops_the_configu
         assert None in causes
     finally:
         command.upgrade(config, "head")
+        # The cause type was made anew: connections that prepared statements against the old
+        # one would fail later tests on this worker ("cache lookup failed for type").
+        engine.dispose()
     with committed_sessions() as db:
         assert db.scalars(select(Challenge.evaluator_image)).all() == [None]
