@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import hmac
 from collections.abc import Callable
-from datetime import timedelta
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Request, Response
@@ -34,7 +33,7 @@ from internal_api.schemas import (
 from server.kit.deps import DBDep
 from server.kit.errors import Unauthorized
 from server.submissions.deps import services
-from server.submissions.reconcile import Timeouts, reconcile, silent
+from server.submissions.reconcile import Timeouts, reconcile, silent, timeouts_of
 from server.submissions.reports import (
     check_running,
     current_state,
@@ -211,7 +210,7 @@ async def _keep(
 
 
 def _timeouts(request: Request) -> Timeouts:
-    return Timeouts(heartbeat=timedelta(seconds=services(request).settings.heartbeat_timeout_s))
+    return timeouts_of(services(request).settings)
 
 
 @router.get("/attempts/silent")

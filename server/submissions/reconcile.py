@@ -19,10 +19,11 @@ import logging
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
-from sqlalchemy import func, select
+from sqlalchemy import ColumnElement, func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from internal_api.schemas import AttemptRef, ReconcileOut
+from server.kit.settings import Settings
 from server.models import ACTIVE_STATES, Cause, State, Submission, Transition, utcnow
 from server.submissions.outbox import Dispatcher, WorkQueue
 from server.submissions.states import new_attempt, transition
@@ -53,10 +54,37 @@ class Timeouts:
     """A queued submission untouched this long gets a fresh wake-up message."""
 
 
-def _silent_running(timeouts: Timeouts, now: datetime):  # type: ignore[no-untyped-def]
+def timeouts_of(settings: Settings) -> Timeouts:
+    """The timeouts this service is configured with (`MANIEVAL_HEARTBEAT_TIMEOUT_S`)."""
+    return Timeouts(heartbeat=timedelta(seconds=settings.heartbeat_timeout_s))
+
+
+def _silent_running(timeouts: Timeouts, now: datetime) -> ColumnElement[bool]:
     return (Submission.state == State.RUNNING) & (
         func.coalesce(Submission.heartbeat_at, Submission.updated_at) < now - timeouts.heartbeat
     )
+
+
+def _lost(timeouts: Timeouts, now: datetime) -> ColumnElement[bool]:
+    stale_launch = (Submission.state == State.LAUNCHING) & (
+        Submission.updated_at < now - timeouts.launch
+    )
+    return _silent_running(timeouts, now) | stale_launch
+
+
+def _past_deadline(now: datetime) -> ColumnElement[bool]:
+    return (
+        Submission.state.in_([State.LAUNCHING, State.RUNNING])
+        & Submission.deadline_at.is_not(None)
+        & (Submission.deadline_at < now)
+    )
+
+
+def stuck(timeouts: Timeouts, now: datetime) -> ColumnElement[bool]:
+    """Attempts the reconciler ends at its next pass: past their deadline, running with no
+    heartbeat within the timeout, or launching for longer than the launch timeout (what an
+    organizer's "re-run the stuck" acts on at once: `server.submissions.moderation`)."""
+    return _past_deadline(now) | _lost(timeouts, now)
 
 
 def silent(
@@ -82,11 +110,7 @@ def reconcile(
     out = ReconcileOut()
     with sessions() as db:
         _time_out(db, now, out)
-        stale_launch = (Submission.state == State.LAUNCHING) & (
-            Submission.updated_at < now - timeouts.launch
-        )
-        stale = _silent_running(timeouts, now) | stale_launch
-        for s in db.scalars(select(Submission).where(stale)):
+        for s in db.scalars(select(Submission).where(_lost(timeouts, now))):
             requeued = end_lost(db, s, cause=Cause.WORKER_LOST, now=now)
             if requeued is not None:
                 out.lost.append(s.id)
@@ -120,13 +144,7 @@ def reconcile(
 
 
 def _time_out(db: Session, now: datetime, out: ReconcileOut) -> None:
-    for s in db.scalars(
-        select(Submission).where(
-            Submission.state.in_([State.LAUNCHING, State.RUNNING]),
-            Submission.deadline_at.is_not(None),
-            Submission.deadline_at < now,
-        )
-    ):
+    for s in db.scalars(select(Submission).where(_past_deadline(now))):
         reason = "the evaluation exceeded its time budget"
         if transition(db, s.id, s.attempt, State.TIMED_OUT, reason, now=now):
             out.timed_out.append(s.id)
