@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 
-from server.accounts.deps import AdminDep
+from server.accounts.deps import AdminDep, UserDep, require_admin
 from server.challenges.service import get_challenge, get_phase, shown_phase
 from server.kit.deps import DBDep, Id
 from server.kit.errors import ERROR_RESPONSES
@@ -47,7 +47,8 @@ _SAID = {
 
 
 def _moderation(action: Moderation) -> Callable[..., SubmissionOut]:
-    def act(submission_id: Id, body: ReasonIn, admin: AdminDep, db: DBDep) -> SubmissionOut:
+    def act(submission_id: Id, body: ReasonIn, user: UserDep, db: DBDep) -> SubmissionOut:
+        admin = require_admin(user)  # after the body's checks: a bad body is a 422 to anyone
         s = get_owned(db, submission_id=submission_id, user=admin)
         moderate(db, by=admin, submission=s, action=action, reason=body.reason)
         db.commit()
@@ -65,10 +66,11 @@ for _action in _ACTIONS:
 
 @router.post("/admin/rerun-stuck")
 def rerun_stuck_submissions(
-    body: RerunStuckIn, request: Request, admin: AdminDep, db: DBDep
+    body: RerunStuckIn, request: Request, user: UserDep, db: DBDep
 ) -> RerunStuckOut:
     """End every stuck attempt (past its deadline, or silent past the heartbeat timeout) of a
     challenge, or of all, and queue it again as a new attempt, now."""
+    admin = require_admin(user)
     svc = services(request)
     challenge = get_challenge(db, slug=body.challenge) if body.challenge is not None else None
     requeued = rerun_stuck(

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 
-from server.accounts.deps import AdminDep, CallerDep, UserDep
+from server.accounts.deps import CallerDep, UserDep, require_admin
 from server.challenges.service import get_challenge, get_phase
 from server.challenges.tracks import get_track
 from server.kit.deps import DBDep, Id, PageNo, PerPage, limit
@@ -219,11 +219,12 @@ def unmark_submission_final(submission_id: Id, user: UserDep, db: DBDep) -> Subm
 def rerun_submission(
     submission_id: Id,
     request: Request,
-    admin: AdminDep,
+    user: UserDep,
     db: DBDep,
     body: ReasonIn | None = None,
 ) -> SubmissionOut:
     """Run an ended submission again as a new attempt (admins; a reason is optional)."""
+    admin = require_admin(user)  # after the body's checks, as every route's
     s = get_owned(db, submission_id=submission_id, user=admin)
     rerun(db, admin=admin, submission=s, reason=body.reason if body is not None else None)
     db.commit()

@@ -9,6 +9,7 @@ from typing import Annotated, Any
 from pydantic import BaseModel, Field
 
 from evaluator.results import Provenance
+from server.audit import REASON_MAX
 from server.kit.schemas import InBody
 from server.models import State
 from server.submissions.method import METHOD_MAX, METHOD_PATTERN, URL_MAX, URL_PATTERN
@@ -46,7 +47,9 @@ class SubmissionPatch(InBody):
         default=None, description="admins only; hiding takes a `reason` (POST .../hide)"
     )
     reason: str | None = Field(
-        default=None, description="admins only: why it is hidden, which its owner is shown"
+        default=None,
+        max_length=REASON_MAX,
+        description="admins only: why it is hidden, which its owner is shown",
     )
     baseline: bool | None = Field(default=None, description="admins only")
     description: str | None = Field(default=None, max_length=2000)
@@ -182,6 +185,7 @@ class LogsOut(BaseModel):
 class ReasonIn(InBody):
     reason: str = Field(
         default="",
+        max_length=REASON_MAX,
         description="why (at most 2000 characters): required to hide or disqualify, and shown "
         "to the submission's owner; optional to undo either or to re-run, kept in the audit log",
     )
