@@ -50,7 +50,7 @@ def audit_listing(
     slugs: dict[int, str] = {}
     if ids:
         named = select(Challenge.id, Challenge.slug).where(Challenge.id.in_(ids))
-        slugs = dict(db.execute(named).tuples().all())
+        slugs = dict(db.execute(named).all())
     entries = [
         AuditEntry(r, slugs.get(r.challenge_id) if r.challenge_id is not None else None)
         for r in shown

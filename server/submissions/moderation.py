@@ -11,7 +11,7 @@ owner's rows are recomputed.
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Literal
+from typing import Any, Literal
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DB
@@ -145,7 +145,7 @@ def _record(
     submission: Submission,
     action: str,
     reason: str,
-    detail: dict[str, object] | None = None,
+    detail: dict[str, Any] | None = None,
 ) -> None:
     audit.record(
         db,
