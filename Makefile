@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 INSTALLED := $(VENV)/.installed
 
-.PHONY: demo test lint system install bench clean
+.PHONY: demo test lint system base-image install bench clean
 
 system:
 	@scripts/system-deps.sh
@@ -15,7 +15,17 @@ $(INSTALLED): pyproject.toml evaluator/sdk/pyproject.toml constraints.txt script
 	@scripts/install-python.sh $(VENV)
 	@touch $@
 
-install: system $(INSTALLED)
+# The base image participants' policies build on, localhost/manieval-base:bookworm: the demo's
+# `manieval push` path and the container tests use it. docker/policy-base/build.sh needs root
+# and about a minute the first time, then does nothing while the image exists.
+base-image: system
+	@if [ "$$(id -u)" = 0 ]; then \
+	  CONTAINERS_CONF=$(CURDIR)/docker/containers.conf docker/policy-base/build.sh; \
+	else \
+	  echo "The policy base image needs root: sudo docker/policy-base/build.sh (once)"; \
+	fi
+
+install: system $(INSTALLED) base-image
 
 lint: install
 	$(BIN)/ruff format --check .

@@ -53,6 +53,10 @@ class ErrorCause(enum.StrEnum):
     CLUSTER = "cluster"
     """The cluster stopped the evaluation (evicted, preempted, unschedulable, refused by a
     quota, a node lost): no quota used, and the submission runs again once."""
+    CONFIGURATION = "configuration"
+    """The operator's configuration cannot run it (a challenge's evaluator image the workers
+    are not allowed to run): no quota used, and not run again by itself, since it would fail
+    the same way until the operator changes the configuration."""
 
 
 class _Body(BaseModel):
@@ -78,6 +82,10 @@ class Assignment(BaseModel):
     """The suite's text, for an evaluator that runs elsewhere (a Kubernetes Job)."""
     shards: int = Field(ge=1)
     """Into how many pods a Kubernetes Job may split the episodes."""
+    evaluator_image: str | None = None
+    """The challenge's own evaluator image (``repo@sha256:...``, one with its task packages),
+    which a Kubernetes Job runs the evaluator on if the worker allows it; None: the worker's
+    own (``MANIEVAL_EVALUATOR_IMAGE``). Executors that evaluate in the worker ignore it."""
 
 
 class RunningReport(_Body):

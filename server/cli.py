@@ -180,9 +180,19 @@ def challenge_load(
             show_default=False,
         ),
     ] = None,
+    evaluator_image: Annotated[
+        str | None,
+        typer.Option(
+            help="The evaluator image its Kubernetes Jobs run, REPO@sha256:DIGEST: one built "
+            "with the suite's task packages and listed in the workers' "
+            "MANIEVAL_EVALUATOR_IMAGES; 'default' for the workers' own (default: as it is).",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Create a challenge from a suite, or update the challenge of that name. The suite must
     have passed `manieval challenge verify` unless told `--unverified`."""
+    from server.challenges.evaluator_image import evaluator_image_note
     from server.challenges.service import (
         ChallengeOptions,
         load_challenge,
@@ -205,6 +215,7 @@ def challenge_load(
         track=track,
         track_of=track_of,
         quota_shared=shared_quota,
+        evaluator_image=evaluator_image,
     )
     sessions = migrated_sessions(s)
     try:
@@ -222,6 +233,7 @@ def challenge_load(
             verification = stored_verification(challenge.verification)
             group = [f"{track_name(t)} ({t.slug})" for t in tracks_of(db, challenge)]
             shared = head_of(db, challenge).quota_shared
+            image = challenge.evaluator_image
     except Unverified as exc:
         console.print(f"[red]error:[/] {exc.message}", highlight=False)
         console.print(
@@ -240,6 +252,9 @@ def challenge_load(
     if len(group) > 1:
         quota = "one quota shared" if shared else "a quota per track"
         console.print(f"  tracks: {', '.join(group)}; {quota}", highlight=False)
+    if image is not None:
+        console.print(f"  evaluator image {image}", highlight=False)
+        console.print(f"note: {evaluator_image_note(image, queue=s.queue)}", highlight=False)
     if refusal is not None:
         # Loaded all the same: the GPUs may come later; until then submissions are refused.
         console.print(

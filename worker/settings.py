@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import socket
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -17,6 +18,8 @@ from typing import Annotated, Any, Literal
 import platformdirs
 from pydantic import Field, SecretStr, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from internal_api.schemas import PINNED_IMAGE
 
 
 def _default_data_dir() -> Path:
@@ -82,6 +85,11 @@ class WorkerSettings(BaseSettings):
     k8s_kubeconfig: Path | None = None
     k8s_api_url: str | None = None
     evaluator_image: str | None = None
+    """The evaluator image of every Job whose challenge names none of its own."""
+    evaluator_images: Annotated[tuple[str, ...], NoDecode] = ()
+    """Further evaluator images a challenge may name (``manieval challenge load
+    --evaluator-image``: one with its task packages), comma or space separated, each pinned by
+    digest. A challenge naming another ends its submissions ``error`` (the configuration's)."""
     evaluator_cpu: str = "2"
     evaluator_memory: str = "4Gi"
     k8s_runtime_class: str | None = None
@@ -147,6 +155,24 @@ class WorkerSettings(BaseSettings):
             return json.loads(value)
         return tuple(n.strip() for n in value.split(",") if n.strip())
 
+    @field_validator("evaluator_images", mode="before")
+    @classmethod
+    def _listed(cls, value: Any) -> Any:
+        return (
+            tuple(i for i in re.split(r"[\s,]+", value) if i) if isinstance(value, str) else value
+        )
+
+    @field_validator("evaluator_images")
+    @classmethod
+    def _pinned(cls, images: tuple[str, ...]) -> tuple[str, ...]:
+        for image in images:
+            if not PINNED_IMAGE.fullmatch(image):
+                raise ValueError(
+                    f"MANIEVAL_EVALUATOR_IMAGES: {image} is not pinned by digest "
+                    "(REPO@sha256:<64 hex digits>)"
+                )
+        return images
+
     @field_validator("server_url")
     @classmethod
     def _url(cls, value: str) -> str:
@@ -166,6 +192,12 @@ class WorkerSettings(BaseSettings):
         """Which service this worker evaluates for, stable across its restarts and ports and
         shared by all its workers: a fingerprint of the worker token (which it does not reveal)."""
         return hashlib.sha256(self.worker_token.get_secret_value().encode()).hexdigest()[:16]
+
+    @property
+    def allowed_evaluator_images(self) -> frozenset[str]:
+        """The evaluator images a Job may run: the default and those listed."""
+        default = (self.evaluator_image,) if self.evaluator_image else ()
+        return frozenset((*default, *self.evaluator_images))
 
     @property
     def resolved_spool_dir(self) -> Path:

@@ -7,8 +7,9 @@
 #       --build-arg EVALUATOR=registry.example.org/manieval/evaluator@sha256:<digest> \
 #       -t registry.example.org/lab/evaluator-lab-tasks:0.1.0 path/to/my_lab_tasks
 #
-# Then push it, resolve its digest, and point MANIEVAL_EVALUATOR_IMAGE at it pinned by digest
-# (docs/deploy.md, "Task packages"). A package that is no distribution (a directory with an
+# Then push it, resolve its digest, list it pinned by digest in the workers'
+# MANIEVAL_EVALUATOR_IMAGES and load the challenge with `--evaluator-image` (docs/deploy.md,
+# "Task packages"). A package that is no distribution (a directory with an
 # __init__.py) goes under /app instead, which is on PYTHONPATH: `COPY my_lab_tasks
 # /app/my_lab_tasks` in place of the install below.
 #

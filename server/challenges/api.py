@@ -101,6 +101,7 @@ def challenge_detail(
         track=track_name(challenge),
         tracks=[TrackOut(name=track_name(t), slug=t.slug, title=t.title) for t in group],
         quota_shared=head_of(db, challenge).quota_shared,
+        evaluator_image=challenge.evaluator_image if who.user and who.user.is_admin else None,
     )
 
 

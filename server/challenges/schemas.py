@@ -110,3 +110,8 @@ class ChallengeOut(ChallengeSummary):
     quota_shared: bool = Field(
         default=False, description="The group's tracks draw on one quota, the head's"
     )
+    evaluator_image: str | None = Field(
+        default=None,
+        description="The evaluator image its Kubernetes Jobs run, pinned by digest (admins "
+        "only; null for others, and where the workers' own runs it)",
+    )

@@ -19,6 +19,7 @@ from evaluator import packages
 from evaluator.suite import Phase as SuitePhase
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
 from server import audit
+from server.challenges.evaluator_image import chosen_evaluator_image
 from server.challenges.tracks import join_group
 from server.challenges.verification import Unverified, suite_verification
 from server.kit.errors import Conflict, Invalid, NotFound
@@ -52,6 +53,9 @@ class ChallengeOptions:
     """Make the challenge a track of this one, the group's head (None: as it is)."""
     quota_shared: bool | None = None
     """Whether the group's tracks share the head's quota (None: as it is; off at first)."""
+    evaluator_image: str | None = None
+    """The challenge's own evaluator image, pinned by digest (`evaluator_image.WORKERS_OWN`:
+    none; None: as it is, unless the suite's task packages changed: `chosen_evaluator_image`)."""
 
 
 def load_challenge(
@@ -82,9 +86,16 @@ def load_challenge(
         .options(selectinload(Challenge.phases))
         .where(Challenge.slug == suite.name)
     )
+    kept_versions = {} if challenge is None else suite_of(challenge).package_versions
     if challenge is None:
         challenge = Challenge(slug=suite.name)
         db.add(challenge)
+    challenge.evaluator_image = chosen_evaluator_image(
+        given=options.evaluator_image,
+        kept=challenge.evaluator_image,
+        kept_versions=kept_versions,
+        suite=suite,
+    )
     # A suite's own `title` (when its schema has one) wins over the name made readable.
     challenge.title = options.title or display_title(suite.name, suite.title or None)
     challenge.description = options.description or suite.description

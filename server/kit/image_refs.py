@@ -14,6 +14,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+from internal_api.schemas import PINNED_IMAGE
+
 # The grammar, transcribed from distribution/reference regexp.go (ASCII only).
 _ALPHANUMERIC = r"[a-z0-9]+"
 _SEPARATOR = r"(?:[._]|__|-+)"
@@ -141,6 +143,21 @@ def parse_reference(text: str) -> ImageReference:
     if not _REFERENCE_RE.fullmatch(text):  # the checks above should have said why already
         raise ImageReferenceError("not a valid image reference")
     return ref
+
+
+def pinned_reference(text: str) -> str:
+    """``text`` if it names exactly one image, by digest (``domain/path@sha256:<hex>``, the
+    rule workers run images by: `internal_api.schemas.PINNED_IMAGE`); ImageReferenceError
+    saying why not."""
+    ref = parse_reference(text)  # a malformed reference: what is wrong with it
+    if ref.digest is None:
+        raise ImageReferenceError(
+            f"{text} names a tag, which can move: pin it by digest "
+            f"({ref.name}@sha256:<digest>, the digest the registry gave the push)"
+        )
+    if not PINNED_IMAGE.fullmatch(text):
+        raise ImageReferenceError(f"{text} is not pinned by a sha256 digest")
+    return text
 
 
 def _check_characters(text: str) -> None:

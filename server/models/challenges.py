@@ -35,6 +35,10 @@ class Challenge(Base):
     """The track's name within its group ("state", "visual"); None: its slug."""
     quota_shared: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     """On a group's head: its tracks' submissions count against one quota, the head's."""
+    evaluator_image: Mapped[str | None] = mapped_column(String(512))
+    """The evaluator image a Kubernetes Job of this challenge runs (``repo@sha256:...``: the
+    project's evaluator with the suite's task packages), if the workers allow it; None: the
+    workers' own (docs/deploy.md, Task packages)."""
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 

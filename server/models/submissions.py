@@ -41,6 +41,9 @@ class Cause(enum.StrEnum):
     """The Kubernetes cluster stopped it (evicted, preempted, unschedulable, quota, node lost)."""
     STOPPED = "stopped"
     """The service was stopped (Ctrl-C, SIGTERM) while it ran: queued again, every time."""
+    CONFIGURATION = ErrorCause.CONFIGURATION.value
+    """The operator's configuration cannot run it (the challenge's evaluator image is not one
+    the workers may run): not queued again, which would fail alike until it is changed."""
 
 
 _state_enum = Enum(

@@ -128,7 +128,8 @@ def report_final(
     cause: ErrorCause | None = None,
 ) -> bool:
     """End an attempt. True when this call (or an identical earlier one) ended it so. An
-    `error` the cluster caused is ours: no quota, and the submission runs again once."""
+    `error` the cluster caused is ours: no quota, and the submission runs again once; one the
+    configuration caused is ours too, and stays `error` (it would fail again)."""
     if not state.final:
         raise Invalid(f"{state.value} is not a final state")
     if state == State.SUCCEEDED and result is None:
@@ -155,6 +156,10 @@ def report_final(
     if cause is not None:
         if state != State.ERROR:
             raise Invalid(f"a cause goes only with error, not {state.value}")
+        if cause == ErrorCause.CONFIGURATION:  # ours, but it would fail again until configured
+            return transition(
+                db, submission_id, attempt, state, reason, cause=Cause.CONFIGURATION, **values
+            )
         return (
             end_lost(db, submission, cause=Cause(cause.value), detail=reason, **values) is not None
         )

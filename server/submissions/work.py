@@ -112,6 +112,7 @@ def assignment(db: DB, *, submission_id: int, attempt: int, seed_secret: bytes) 
         plan=plan,
         suite_yaml=submission.challenge.suite_yaml,
         shards=max(1, min(suite.shards, plan.episode_count())),
+        evaluator_image=submission.challenge.evaluator_image,
     )
 
 

@@ -25,6 +25,9 @@ from worker.kubernetes.spec import job_spec
 WORKER = f"system:serviceaccount:{CONTROL_PLANE}:manieval-worker"
 JOBS, SECRETS = "manieval-evaluation-jobs", "manieval-evaluation-secrets"
 POLICY_IMAGE = "registry.example.org/alice/policy@sha256:" + "ab" * 32
+LAB = "registry.example.org/lab/evaluator-lab-tasks@sha256:" + "1a" * 32
+OTHER = "registry.example.org/other/evaluator-tasks@sha256:" + "2b" * 32
+EVALUATOR_RULE = "its one container is the evaluator, in an evaluator image the workers may run"
 _ENV = celpy.Environment()
 
 
@@ -144,11 +147,11 @@ def _policy(job: Json) -> Json:
 STRAYS: dict[str, tuple[Callable[[Json], object], str]] = {
     "another-evaluator-image": (
         lambda j: _evaluator(j).update(image="registry.example.org/miner:latest"),
-        "its one container is the evaluator, in the workers' evaluator image",
+        EVALUATOR_RULE,
     ),
     "a-second-container": (
         lambda j: _pod(j)["containers"].append(dict(_evaluator(j), name="extra")),
-        "its one container is the evaluator, in the workers' evaluator image",
+        EVALUATOR_RULE,
     ),
     "an-unpinned-policy-image": (
         lambda j: _policy(j).update(image="registry.example.org/alice/policy:latest"),
@@ -284,3 +287,48 @@ def test_the_rules_bind_the_worker_alone(monkeypatch: pytest.MonkeyPatch):
     assert refusals(policies(objects)[JOBS], job, params_of(objects), user=operator) == [
         "not matched"
     ]
+
+
+def lab_job(monkeypatch: pytest.MonkeyPatch, image: str = LAB) -> Json:
+    """The Job a production worker that lists `image` creates for a challenge naming it."""
+    settings = worker_settings("production", monkeypatch)
+    settings = settings.model_copy(update={"evaluator_images": (image,)})
+    job = build_job(
+        job_spec(settings, core_assignment().model_copy(update={"evaluator_image": image}))
+    )
+    assert _evaluator(job)["image"] == image
+    return job
+
+
+@pytest.mark.parametrize(
+    "listed",
+    [LAB, f"{OTHER},{LAB}", f"{LAB}, {OTHER}", f"{OTHER}\n{LAB}\n", f"  {OTHER}\t{LAB} "],
+    ids=["alone", "last-after-a-comma", "first-before-a-comma", "lines", "blanks"],
+)
+def test_a_job_on_a_challenges_image_the_workers_list_is_admitted(
+    listed: str, monkeypatch: pytest.MonkeyPatch
+):
+    objects = render("production")
+    params = params_of(objects, {"MANIEVAL_EVALUATOR_IMAGES": listed})
+    assert refusals(policies(objects)[JOBS], lab_job(monkeypatch), params) == []
+
+
+@pytest.mark.parametrize(
+    ("listed", "image"),
+    [
+        (None, LAB),
+        (OTHER, LAB),
+        (f"x{LAB}", LAB),  # an entry that merely ends with it
+        (f"{LAB}0", LAB),  # ... or starts with it
+        (LAB, LAB.removeprefix("registry.")),  # an image that is part of an entry
+        ("", LAB),
+    ],
+    ids=["no-list", "not-listed", "longer-before", "longer-after", "part-of-an-entry", "empty"],
+)
+def test_a_job_on_an_image_the_workers_do_not_list_is_refused(
+    listed: str | None, image: str, monkeypatch: pytest.MonkeyPatch
+):
+    objects = render("production")
+    params = params_of(objects, {"MANIEVAL_EVALUATOR_IMAGES": listed} if listed is not None else {})
+    job = lab_job(monkeypatch, image)
+    assert refusals(policies(objects)[JOBS], job, params) == [EVALUATOR_RULE]

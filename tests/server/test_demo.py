@@ -1,4 +1,6 @@
-"""`make demo` is the quick start: `manieval demo` must evaluate the examples and fill the board."""
+"""`make demo` is the quick start. A demo whose examples fail says what failed and what to do
+next. The demo that succeeds (started, stopped mid-evaluation, started again to the end, and
+again) is in `tests/server/test_serve_stop.py`, with the other tests that stop the service."""
 
 from __future__ import annotations
 
@@ -10,59 +12,13 @@ from pathlib import Path
 
 import pytest
 
-from tests.server.registry_fixture import require_tool
-
-pytestmark = [pytest.mark.sim, pytest.mark.long]
+pytestmark = pytest.mark.sim
 
 
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-# Both examples on the core track (six recorded videos each), the scripted one on the visual
-# track (two), on a busy 2-core machine.
-@pytest.mark.timeout(1500)
-def test_demo_evaluates_the_examples_and_is_idempotent(tmp_path: Path) -> None:
-    require_tool("docker-registry")
-    registry = f"127.0.0.1:{free_port()}"
-    env = {
-        **os.environ,
-        "MANIEVAL_DATA_DIR": str(tmp_path),
-        "MANIEVAL_EMBEDDED_REGISTRY_ADDR": registry,
-    }
-    command = [
-        sys.executable,
-        "-m",
-        "manieval",
-        "demo",
-        "--episodes",
-        "1",
-        "--exit-when-done",
-        "--port",
-        str(free_port()),
-    ]
-    first = subprocess.run(command, env=env, capture_output=True, text=True, timeout=1400)
-    assert first.returncode == 0, first.stderr[-3000:]
-    assert "submitted local:scripted on maniskill-core" in first.stderr
-    assert "submitted local:scripted on maniskill-visual" in first.stderr  # both tracks
-    assert "succeeded" in first.stderr
-    # Without a terminal, progress is a few lines (a quarter each), not one per episode.
-    assert "None" not in first.stderr
-    assert first.stderr.count(" episodes (") <= 3 * 3
-    assert "maniskill-core leaderboard" in first.stdout
-    assert "maniskill-visual leaderboard" in first.stdout
-    assert first.stdout.count("baseline") == 3  # scripted and random; scripted on cameras
-    assert (tmp_path / "demo-password").stat().st_mode & 0o077 == 0
-    # A participant's own policy: the registry it started, and the commands that reach it.
-    assert f"registry: {registry}" in first.stderr
-    assert "manieval push my-policy --challenge maniskill-core --wait" in first.stderr
-    command[-1] = str(free_port())
-    second = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
-    assert second.returncode == 0, second.stderr[-3000:]
-    assert "submitted" not in second.stderr  # finished work is reused
-    assert second.stdout.count("baseline") == 3
 
 
 CRASHER = "import sys\nprint('cannot load weights.pt', file=sys.stderr)\nsys.exit(3)\n"

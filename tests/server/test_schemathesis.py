@@ -13,6 +13,7 @@ Bounded for a 2-core CI machine: a few examples per operation and short sequence
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 import uuid
 from collections.abc import Iterator
@@ -27,6 +28,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
 from schemathesis.checks import not_a_server_error
+from schemathesis.generation.jsonschema import strategy as jsonschema_strategy
 from schemathesis.specs.openapi.checks import (
     content_type_conformance,
     response_headers_conformance,
@@ -56,6 +58,32 @@ from server.submissions.service import submit
 from testkit.factories import PASSWORD, SUITE, RecordingQueue, fake_resolve_for
 
 pytestmark = pytest.mark.long
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _pattern_strategies_built_once() -> Iterator[None]:
+    """Build each pattern's string strategy once per module, not once per test and operation.
+
+    schemathesis builds a field's strategy anew for every operation in every test; for our
+    printable-text patterns (negated classes that span Unicode: `[^\x00-\x1f\ud800-...]*`)
+    `from_regex` with the codec's alphabet takes about a second each time, and that was 40 % of
+    this module's time. A strategy is an immutable description of values, safe to draw from
+    in any test, and its inputs here are the pattern and the alphabet, so it is cached on those,
+    as schemathesis already caches `_anything_for` on the alphabet. What is generated does not
+    change."""
+    built: dict[tuple[str, int, Any], Any] = {}
+    original = jsonschema_strategy._from_pattern
+
+    def from_pattern(compiled: re.Pattern[str], ctx: Any) -> Any:
+        key = (compiled.pattern, compiled.flags, ctx.alphabet)
+        if key not in built:
+            built[key] = original(compiled, ctx)
+        return built[key]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(jsonschema_strategy, "_from_pattern", from_pattern)
+        yield
+
 
 SECRET = "ALICE-PRIVATE-3f9c"  # appears only in Alice's private data
 PG_ADMIN_URL = os.environ.get(

@@ -262,22 +262,38 @@ def _history(sessions: sessionmaker[Session], sid: int) -> list[tuple[int, State
     return [(attempt, state, cause) for attempt, state, cause in rows]
 
 
-@pytest.mark.sim
-@pytest.mark.timeout(1800)
-def test_ctrl_c_on_the_demo_mid_evaluation_exits_0_and_the_next_start_finishes(
-    tmp_path: Path,
-) -> None:
+@dataclass(frozen=True)
+class StoppedDemo:
+    data: Path
+    extra: dict[str, str]
+    attempts: dict[int, int]
+    """Each submission's attempt once stopped: 2 for those that were under way."""
+
+
+def stop_the_demo_mid_evaluation(tmp_path: Path, sig: signal.Signals) -> StoppedDemo:
+    """Start `manieval demo`, check what it says a newcomer can do, and send it `sig` while
+    both examples are mid-evaluation: it exits 0 within the bound, leaves no process behind,
+    and queues again what it interrupted."""
     require_tool("docker-registry")
     require_tool("podman")
     data = tmp_path / "data"
     data.mkdir()
-    with launched(["demo", "--episodes", "1"], data) as demo:
+    registry = f"127.0.0.1:{free_port()}"
+    extra = {"MANIEVAL_EMBEDDED_REGISTRY_ADDR": registry}
+    with launched(["demo", "--episodes", "1"], data, extra=extra) as demo:
         wait_for(lambda: mid_evaluation(demo, 2), "both examples mid-evaluation", demo)
+        started = demo.output()
+        assert "submitted local:scripted on maniskill-core" in started, started[-5000:]
+        assert "submitted local:scripted on maniskill-visual" in started  # both tracks
+        # A participant's own policy: the registry it started, and the commands that reach it.
+        assert f"registry: {registry}" in started
+        assert "manieval push my-policy --challenge maniskill-core --wait" in started
+        assert (data / "demo-password").stat().st_mode & 0o077 == 0
         tree = demo.tree()
         policies = [p for p in tree if "policy.py" in " ".join(_cmdline(p))]
         assert policies, _names(tree)
-        code, took = demo.stop(signal.SIGINT)
-        print(f"demo: exit {code} {took:.2f} s after SIGINT")  # the acceptance's figure (-s)
+        code, took = demo.stop(sig)
+        print(f"demo: exit {code} {took:.2f} s after {sig.name}")  # the acceptance's figure (-s)
         output = demo.output()
         assert code == 0, output[-5000:]
         assert took < EXIT_BOUND_S, output[-5000:]
@@ -297,8 +313,32 @@ def test_ctrl_c_on_the_demo_mid_evaluation_exits_0_and_the_next_start_finishes(
                 assert all(state != State.ERROR for _, state, _ in history), history
             attempts[s.id] = s.attempt
         assert list(attempts.values()).count(2) >= 2, attempts  # both running ones
-        ids = sorted(attempts)
-    with launched(["demo", "--episodes", "1", "--exit-when-done"], data) as again:
+    return StoppedDemo(data, extra, attempts)
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(1200)
+def test_ctrl_c_on_the_demo_mid_evaluation_exits_0_and_queues_its_runs_again(
+    tmp_path: Path,
+) -> None:
+    stop_the_demo_mid_evaluation(tmp_path, signal.SIGINT)
+
+
+# `make demo` is the quick start; this is its whole life as a newcomer meets it. The first start
+# submits both examples on the core track and the scripted one on the visual track, and is
+# stopped mid-evaluation (SIGTERM, which the demo takes as Ctrl-C: the test above sends that);
+# the next start finishes the interrupted work and fills both boards (six recorded videos per
+# example on the core track, two on the visual one, on a busy 2-core machine); a third start
+# reuses what finished. (tests/server/test_demo.py has the demo that fails.)
+@pytest.mark.sim
+@pytest.mark.timeout(2400)
+def test_a_demo_stopped_mid_evaluation_finishes_on_its_next_start_and_is_reused_after(
+    tmp_path: Path,
+) -> None:
+    stopped = stop_the_demo_mid_evaluation(tmp_path, signal.SIGTERM)
+    ids = sorted(stopped.attempts)
+    again_args = ["demo", "--episodes", "1", "--exit-when-done"]
+    with launched(again_args, stopped.data, extra=stopped.extra) as again:
         code = again.process.wait(timeout=1500)
         output = again.output()
         assert code == 0, output[-5000:]
@@ -306,8 +346,21 @@ def test_ctrl_c_on_the_demo_mid_evaluation_exits_0_and_the_next_start_finishes(
         finished = submissions(again)
         assert [s.id for s in finished] == ids
         assert [(s.state, s.attempt) for s in finished] == [
-            (State.SUCCEEDED, attempts[i]) for i in ids
+            (State.SUCCEEDED, stopped.attempts[i]) for i in ids
         ], output
+        # Without a terminal, progress is a few lines (a quarter each), not one per episode.
+        assert "None" not in output
+        assert output.count(" episodes (") <= 3 * 3, output[-5000:]
+        assert "maniskill-core leaderboard" in output
+        assert "maniskill-visual leaderboard" in output
+        baselines = output.count("baseline")
+        assert baselines == 3, output[-5000:]  # scripted and random; scripted on cameras
+    with launched(again_args, stopped.data, extra=stopped.extra) as third:
+        code = third.process.wait(timeout=600)
+        output = third.output()
+        assert code == 0, output[-5000:]
+        assert "submitted" not in output  # finished work is reused
+        assert output.count("baseline") == baselines
 
 
 def _cmdline(process: psutil.Process) -> list[str]:

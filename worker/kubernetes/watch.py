@@ -37,7 +37,7 @@ from worker.kubernetes.informer import ClusterWatch, Failure, cluster_watch
 from worker.kubernetes.manifest import EVALUATOR, JobSpec, build_job, job_name
 from worker.kubernetes.pod_history import PodHistory
 from worker.kubernetes.quota import demand, never_fits, shortfall
-from worker.kubernetes.spec import job_spec
+from worker.kubernetes.spec import EvaluatorImageNotAllowed, job_spec
 from worker.kubernetes.status import JobStatus, job_status, pod_view, progress_in
 from worker.outcome import ended
 from worker.server_api import ServerAPI, ServerUnavailable
@@ -51,6 +51,7 @@ times the attempt out: time to see the Job end and report it."""
 API_OUTAGE_S = 600.0  # the API server unreachable this long: the attempt ends `error`
 CANCEL_CHECK_S = 1.0  # between looks, a heartbeat this often: a cancel stops the Job at once
 CLUSTER = ErrorCause.CLUSTER
+CONFIGURATION = ErrorCause.CONFIGURATION
 _ROOM = object()  # `_until_room`'s answer when the Job may be created
 _UNKNOWN = object()  # ... when the quotas could not be read: the API server decides at creation
 
@@ -74,8 +75,7 @@ def run_as_job(
     try:
         watch = _watch_for(api, settings, handed, stop)
     except Exception as exc:  # our configuration: error, with the reason
-        report = ended(State.ERROR, f"cannot run: {exc}")
-        return api.final(handed.submission_id, handed.attempt, report)
+        return api.final(handed.submission_id, handed.attempt, _unrunnable(exc))
     return _guarded(watch, watch.run)
 
 
@@ -95,9 +95,16 @@ def resume_watch(
     try:
         watch = _watch_for(api, settings, handed, stop)
     except Exception as exc:
-        return api.final(submission_id, attempt, ended(State.ERROR, f"cannot run: {exc}"))
+        return api.final(submission_id, attempt, _unrunnable(exc))
     log.info("resuming the watch of Job %s", watch.spec.name)
     return _guarded(watch, watch.resume)
+
+
+def _unrunnable(exc: Exception) -> FinalReport:
+    """`error` for an attempt the worker cannot make a Job of; an evaluator image the operator
+    has not allowed is the configuration's cause (no quota, not run again by itself)."""
+    cause = CONFIGURATION if isinstance(exc, EvaluatorImageNotAllowed) else None
+    return ended(State.ERROR, f"cannot run: {exc}", cause=cause)
 
 
 def _watch_for(
