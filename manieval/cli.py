@@ -64,7 +64,7 @@ DEFERRED = {
         "Run the service locally with the example policies evaluated on the leaderboard.",
     ),
     "db": Deferred("server.cli", "db_app", "Database schema."),
-    "admin": Deferred("server.cli", "admin_app", "Administrators."),
+    "admin": Deferred("server.admin_cli", "admin_app", "Administrators and organizer tools."),
     "challenge": Deferred("server.cli", "challenge_app", "Challenges."),
 }
 

@@ -38,6 +38,7 @@ from server.leaderboard import challenge_page, help_page
 from server.leaderboard import pages as leaderboard_pages
 from server.registry import api as registry_api
 from server.services import Services
+from server.submissions import admin_api as submissions_admin
 from server.submissions import api as submissions_api
 from server.submissions import events, internal, start_page, submit_pages
 from server.submissions import pages as submissions_pages
@@ -133,6 +134,7 @@ def create_app(
         challenges_api,
         leaderboard_api,
         submissions_api,
+        submissions_admin,
         submissions_videos,
         submissions_trajectories,
         internal,

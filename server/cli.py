@@ -1,8 +1,8 @@
 """Operator commands of the server: `manieval db upgrade`, `manieval admin create|users|
 disable|enable|verify`, `manieval challenge load`, `challenge verify`, `challenge packages`,
-`challenge teams`, `challenge set`, `challenge phase` and `challenge reevaluate`
-(`manieval serve` and `demo` compose
-it with the worker: `manieval/serve.py`)."""
+`challenge teams`, `challenge set`, `challenge phase` and `challenge reevaluate` (the organizer's
+other `admin` commands: `server/admin_cli.py`; `manieval serve` and `demo` compose it with the
+worker: `manieval/serve.py`)."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 console = Console(stderr=True, soft_wrap=True)
 
 db_app = typer.Typer(help="Database schema.", no_args_is_help=True)
-admin_app = typer.Typer(help="Administrators.", no_args_is_help=True)
+admin_app = typer.Typer(help="Administrators and organizer tools.", no_args_is_help=True)
 challenge_app = typer.Typer(help="Challenges.", no_args_is_help=True)
 
 
@@ -543,7 +543,7 @@ def challenge_close(
     from server.challenges.service import close_phase
 
     with _transaction() as db:
-        closed = close_phase(db, slug=slug, phase=phase)
+        closed = close_phase(db, by=None, slug=slug, phase=phase)
         rule = closed.after_close
     late = "go to its post-deadline board" if rule == "post_deadline" else "are refused"
     console.print(f"challenge {slug}: phase {phase} closed; later submissions {late}")
@@ -558,7 +558,7 @@ def challenge_publish(
     from server.challenges.service import publish_board
 
     with _transaction() as db:
-        publish_board(db, slug=slug, phase=phase)
+        publish_board(db, by=None, slug=slug, phase=phase)
     console.print(f"challenge {slug}: the board of phase {phase} is public")
 
 
@@ -582,7 +582,7 @@ def challenge_reevaluate(
         phases = [get_phase(challenge, phase)] if phase is not None else challenge.phases
         for target in phases:
             try:
-                started.append(reevaluate(db, challenge=challenge, phase=target, by="the operator"))
+                started.append(reevaluate(db, by=None, challenge=challenge, phase=target))
             except NothingToReevaluate:
                 if phase is not None:
                     raise

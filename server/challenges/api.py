@@ -114,7 +114,7 @@ PhasePath = Annotated[str, FastAPIPath(max_length=32)]
 @router.post("/challenges/{slug}/phases/{phase}/close", tags=["admin"])
 def close_phase(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) -> ChallengeOut:
     """Close the phase now (admins): later submissions go by its `after_close` rule."""
-    service.close_phase(db, slug=slug, phase=phase)
+    service.close_phase(db, by=admin, slug=slug, phase=phase)
     db.commit()
     return challenge_detail(slug, Caller(user=admin, session=None), db)
 
@@ -122,7 +122,7 @@ def close_phase(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) ->
 @router.post("/challenges/{slug}/phases/{phase}/publish", tags=["admin"])
 def publish_board(slug: SlugPath, phase: PhasePath, admin: AdminDep, db: DBDep) -> ChallengeOut:
     """Show the phase's hidden board to everyone (admins)."""
-    service.publish_board(db, slug=slug, phase=phase)
+    service.publish_board(db, by=admin, slug=slug, phase=phase)
     db.commit()
     return challenge_detail(slug, Caller(user=admin, session=None), db)
 

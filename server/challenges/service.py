@@ -148,10 +148,13 @@ def _rules_of(phase: Phase | SuitePhase) -> tuple[str, bool, str, str]:
     return (phase.counts, phase.final_choice, phase.after_close, phase.board)
 
 
-def close_phase(db: DB, *, slug: str, phase: str, now: datetime | None = None) -> Phase:
-    """Close the phase now (an organizer's action): a submission racing it is either made
-    before the close or goes by the phase's `after_close` rule, never onto the official board
-    after it (the submit path holds the phase's row, `lock_phase`)."""
+def close_phase(
+    db: DB, *, by: User | None, slug: str, phase: str, now: datetime | None = None
+) -> Phase:
+    """Close the phase now (an organizer's action, `by` an admin or None: the command line,
+    recorded): a submission racing it is either made before the close or goes by the phase's
+    `after_close` rule, never onto the official board after it (the submit path holds the
+    phase's row, `lock_phase`)."""
     found = get_phase(get_challenge(db, slug=slug), phase)
     locked = lock_phase(db, phase_id=found.id, write=True)
     now = now or utcnow()  # read once the lock is ours: every submit before it is earlier
@@ -162,8 +165,21 @@ def close_phase(db: DB, *, slug: str, phase: str, now: datetime | None = None) -
     if locked.opens_at is not None and now < locked.opens_at:
         locked.opens_at = now  # a phase closed before it opened never opened
     locked.closes_at = now
+    _record(db, by, locked, "phase.close", {"phase": locked.name, "closes_at": now.isoformat()})
     db.flush()
     return locked
+
+
+def _record(db: DB, by: User | None, phase: Phase, action: str, detail: dict[str, Any]) -> None:
+    audit.record(
+        db,
+        by=by,
+        action=action,
+        target_kind="phase",
+        target_id=phase.id,
+        challenge_id=phase.challenge_id,
+        detail=detail,
+    )
 
 
 def lock_phase(db: DB, *, phase_id: int, write: bool = False) -> Phase:
@@ -182,15 +198,18 @@ def lock_phase(db: DB, *, phase_id: int, write: bool = False) -> Phase:
     return locked
 
 
-def publish_board(db: DB, *, slug: str, phase: str, now: datetime | None = None) -> Phase:
-    """Show the phase's hidden board to everyone (an organizer's action; publishing twice
-    keeps the first date)."""
+def publish_board(
+    db: DB, *, by: User | None, slug: str, phase: str, now: datetime | None = None
+) -> Phase:
+    """Show the phase's hidden board to everyone (an organizer's action, recorded as
+    `close_phase`'s; publishing twice keeps the first date and records nothing)."""
     found = get_phase(get_challenge(db, slug=slug), phase)
     if found.board != "hidden":
         raise Conflict(f"phase {phase!r} of {slug!r} has a public board: nothing to publish")
     if found.published_at is None:
         found.published_at = now or utcnow()
         found.leaderboard_version += 1  # cached snapshots were the hidden board's
+        _record(db, by, found, "phase.publish", {"phase": found.name})
         db.flush()
     return found
 

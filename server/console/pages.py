@@ -270,10 +270,10 @@ def open_now(slug: str, phase: str, request: Request, who: PostedDep, db: DBDep)
 @router.post("/admin/challenges/{slug}/phases/{phase}/close")
 def close_now(slug: str, phase: str, request: Request, who: PostedDep, db: DBDep) -> Response:
     """Close the phase now: the close an organizer makes anywhere (`close_phase`)."""
-    admin_signed_in(request, who)
+    admin = admin_signed_in(request, who)
 
     def act() -> None:
-        challenges.close_phase(db, slug=slug, phase=phase)
+        challenges.close_phase(db, by=admin, slug=slug, phase=phase)
 
     return _attempt(request, who, db, slug, act, done="close", error_phase=phase)
 
@@ -281,9 +281,9 @@ def close_now(slug: str, phase: str, request: Request, who: PostedDep, db: DBDep
 @router.post("/admin/challenges/{slug}/phases/{phase}/publish")
 def publish(slug: str, phase: str, request: Request, who: PostedDep, db: DBDep) -> Response:
     """Show the phase's hidden board to everyone (`publish_board`)."""
-    admin_signed_in(request, who)
+    admin = admin_signed_in(request, who)
 
     def act() -> None:
-        challenges.publish_board(db, slug=slug, phase=phase)
+        challenges.publish_board(db, by=admin, slug=slug, phase=phase)
 
     return _attempt(request, who, db, slug, act, done="publish", error_phase=phase)

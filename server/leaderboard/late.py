@@ -13,8 +13,8 @@ from sqlalchemy.orm import Session as DB
 
 from server.challenges.service import get_challenge, get_phase
 from server.kit.errors import NotFound
-from server.models import State, Submission, User, team_of
-from server.standings.entries import participant_of, row_order
+from server.models import Submission, User, team_of
+from server.standings.entries import competing, participant_of, row_order, standing
 
 
 @dataclass(frozen=True)
@@ -37,14 +37,9 @@ def post_deadline_board(db: DB, *, slug: str, phase: str, viewer: User | None) -
         select(Submission, User.username)
         .join(User, User.id == Submission.user_id)
         .where(
-            Submission.phase_id == found.id,
-            Submission.board_version == found.board_version,
+            *standing(found.id, found.board_version),
             Submission.post_deadline.is_(True),
-            Submission.state == State.SUCCEEDED,
-            Submission.public.is_(True),
-            Submission.hidden.is_(False),
-            Submission.baseline.is_(False),
-            Submission.score.is_not(None),
+            *competing(),  # baselines and disqualified submissions are not on it
         )
         .order_by(*row_order(counts=found.counts, final_choice=False))
     ).all()

@@ -116,6 +116,12 @@ def _rate(value: float, low: float | None, high: float | None) -> str:
     )
 
 
+def _mark(row: Row) -> str:
+    if row.disqualified is not None:
+        return " (disqualified)"  # the reason is the board's and the submission page's
+    return " (baseline)" if row.baseline else ""
+
+
 def _cells(row: Row, tasks: Sequence[str], escape: Any, *, dash: str) -> list[str]:
     who = row.participant + (f" ({row.method})" if row.method else "")
     found = [
@@ -125,7 +131,7 @@ def _cells(row: Row, tasks: Sequence[str], escape: Any, *, dash: str) -> list[st
     return [
         dash if row.rank is None else str(row.rank),
         dash if row.tie_group is None else str(row.tie_group),
-        escape(who) + (" (baseline)" if row.baseline else ""),
+        escape(who) + _mark(row),
         _rate(row.score, row.score_ci_low, row.score_ci_high),
         *found,
     ]

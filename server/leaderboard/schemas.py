@@ -10,7 +10,9 @@ from server.kit.schemas import Page
 
 
 class LeaderboardRowOut(BaseModel):
-    rank: int | None = Field(description="1 for the best score; null for a baseline (unranked).")
+    rank: int | None = Field(
+        description="1 for the best score; null for a baseline or a disqualified row (unranked)."
+    )
     username: str = Field(description="Who submitted (for a team's row: the member who did).")
     team: str | None = Field(
         default=None,
@@ -44,6 +46,11 @@ class LeaderboardRowOut(BaseModel):
         "service would evaluate in now: any of mani_skill, sapien, torch, numpy, sim_backend, "
         "render_backend, suite_sha256 (docs/metrics.md, Provenance); empty: the same, or not "
         "known.",
+    )
+    disqualified: str | None = Field(
+        default=None,
+        description="Why the organizers disqualified it: such a row stays on the board, "
+        "unranked, after the ranked rows; null: not disqualified.",
     )
     tied: bool = Field(
         default=False,

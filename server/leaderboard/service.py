@@ -32,7 +32,7 @@ from server.models import (
     Submission,
     User,
 )
-from server.standings.entries import eligible_for, summary
+from server.standings.entries import competing, eligible_for, summary
 
 V = TypeVar("V")
 
@@ -130,7 +130,7 @@ def record_points(db: DB, *, phase_id: int) -> list[ScorePoint]:
     """Public succeeded submissions that beat every earlier one: the database keeps the
     running best (a window function), so only the few records travel, however many ran."""
     version = current_version(db, phase_id=phase_id)
-    records = and_(*eligible_for(phase_id, version), Submission.baseline.is_(False))
+    records = and_(*eligible_for(phase_id, version), *competing())
     order = (Submission.created_at, Submission.id)
     ranked = (
         select(
@@ -157,7 +157,7 @@ def record_points(db: DB, *, phase_id: int) -> list[ScorePoint]:
 
 @dataclass(frozen=True)
 class Row:
-    rank: int | None  # None for baselines: they are shown for reference, not ranked
+    rank: int | None  # None for baselines and disqualified rows: they are not ranked
     username: str
     submission_id: int
     baseline: bool
@@ -180,6 +180,9 @@ class Row:
     environment_differs: tuple[str, ...] = ()
     """What of its evaluation environment differs from the service's current one (none:
     the same, or not known): docs/metrics.md, Provenance."""
+    disqualified: str | None = None
+    """Why the organizers disqualified it (then it is unranked, after the ranked rows); None:
+    it was not."""
 
     @property
     def participant(self) -> str:
@@ -267,6 +270,7 @@ def board_row(
         paper_url=entry.paper_url,
         code_url=entry.code_url,
         environment_differs=tuple(differences(recorded, current)) if current else (),
+        disqualified=data.get("disqualified"),
     )
 
 

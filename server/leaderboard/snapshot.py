@@ -74,7 +74,7 @@ class Snapshot:
     version: int  # the phase's leaderboard version (the cache key) it was read at
     board_version: int  # which evaluation of the phase it shows (docs/server.md, Re-evaluation)
     rows: list[Stored]
-    ranks: list[int | None]  # None for baselines
+    ranks: list[int | None]  # None for unranked rows: baselines, disqualified ones
     ties: TieGroups
     alpha: float  # the phase's significance level, at which the tie groups are drawn
     tasks: list[str]
@@ -288,7 +288,9 @@ def _summary_columns() -> tuple[Any, ...]:
     interval_at = [summary[("score_interval", end)].as_float() for end in (0, 1)]
     text = cast(summary, Text).label("summary_text")
     ends = interval_at[0].label("ci_low"), interval_at[1].label("ci_high")
-    return text, *ends, LeaderboardEntry.outcomes
+    # Whether (and why) it is disqualified decides its place: read with the row, not parsed.
+    disqualified = summary["disqualified"].as_string().label("disqualified")
+    return text, *ends, disqualified, LeaderboardEntry.outcomes
 
 
 def _interval(db: DB, entry: Any) -> Interval:
@@ -317,9 +319,13 @@ def read_whole(
     shown = (tasks, conditions, current)  # a row's mark is against the current environment
     if held is not None and (held.tasks, held.conditions, held.environment) == shown:
         keep = held.by_id if db.get_bind().dialect.name in STABLE_IDS else {}
-    rows = [keep.get(entry.id) or _stored(db, entry, current) for entry in entries]
+    read = [keep.get(entry.id) or _stored(db, entry, current) for entry in entries]
+    # The database's rank order, with disqualified rows moved after the others (`Stored.key`).
+    rows = [s for s in read if s.disqualified is None] + [
+        s for s in read if s.disqualified is not None
+    ]
     ranks: list[int | None] = []
-    _rank((s.baseline for s in rows), ranks)
+    _rank((s.unranked for s in rows), ranks)
     found = next(p for p in challenge.phases if p.id == phase_id)
     alpha = found.significance_level
     known = held.ties.p_values if held is not None else {}
@@ -409,14 +415,14 @@ def advance(db: DB, held: Snapshot, *, version: int) -> Snapshot | None:
 def _rank_from(rows: list[Stored], first: int, ranks: list[int | None]) -> None:
     """Extend `ranks`, right up to `first`, to every row."""
     rank = next((found for found in reversed(ranks[:first]) if found is not None), 0)
-    _rank((s.baseline for s in rows[first:]), ranks, rank=rank)
+    _rank((s.unranked for s in rows[first:]), ranks, rank=rank)
 
 
-def _rank(baselines: Iterable[bool], ranks: list[int | None], *, rank: int = 0) -> None:
-    """Append the rank of each row in rank order (given whether it is a baseline), after a
-    ranked row of `rank`: baselines are not ranked."""
-    for baseline in baselines:
-        if baseline:
+def _rank(unranked: Iterable[bool], ranks: list[int | None], *, rank: int = 0) -> None:
+    """Append the rank of each row in rank order (given whether it is unranked: a baseline or
+    disqualified), after a ranked row of `rank`."""
+    for alone in unranked:
+        if alone:
             ranks.append(None)
             continue
         rank += 1

@@ -18,12 +18,13 @@ from typing import Any
 
 from evaluator.paired import PackedOutcomes
 from evaluator.results import Environment
+from server.kit.spreadsheets import csv_safe
 from server.leaderboard.schemas import LeaderboardRowOut
 from server.leaderboard.service import Interval, Row, board_row
 
 CSV_HEADER = ["rank", "username", "baseline", "score", "score_ci_low", "score_ci_high", "tied"]
 CSV_HEADER += ["tie_group", "submitted_at", "submission_id", "team", "team_display_name", "method"]
-CSV_HEADER += ["paper_url", "code_url"]
+CSV_HEADER += ["paper_url", "code_url", "disqualified"]
 ENVIRONMENT_COLUMN = "environment_differs"
 """The CSV's last column: the environment fields that differ, joined by ";"."""
 
@@ -32,16 +33,11 @@ _SERIALS = itertools.count(1)
 
 Place = tuple[int | None, bool, int | None]
 """Where a snapshot puts a row: its rank, whether it is tied with the ranked row above (in its
-tie group), and its tie group (None, None for a baseline)."""
+tie group), and its tie group (None, None for an unranked row: a baseline, a disqualified one)."""
 
 
 def _json_int(n: int | None) -> bytes:
     return b"null" if n is None else str(n).encode()
-
-
-def csv_safe(text: str) -> str:
-    """Spreadsheets run cells starting with = + - @ as formulas: defuse them."""
-    return "'" + text if text[:1] in ("=", "+", "-", "@") else text
 
 
 def csv_header(tasks: Sequence[str], conditions: Sequence[str]) -> str:
@@ -91,6 +87,7 @@ class Stored:
         "_json",
         "_sorts",
         "current",
+        "disqualified",
         "interval",
         "key",
         "outcomes",
@@ -129,12 +126,25 @@ class Stored:
         """The ranked condition's episodes, packed: what the tie groups pair."""
         self.current = current
         """The environment the row's is compared with: the suite's now (`Snapshot`)."""
-        self.key: tuple[float, Any, int] = (-entry.score, entry.submitted_at, entry.id)
-        """The rank order: higher score, then earlier, then lower id (the database's order)."""
+        self.disqualified: str | None = getattr(entry, "disqualified", None)
+        """Why the organizers disqualified it (its summary's), or None."""
+        self.key: tuple[bool, float, Any, int] = (
+            self.disqualified is not None,
+            -entry.score,
+            entry.submitted_at,
+            entry.id,
+        )
+        """The rank order: disqualified rows after the others, then higher score, then
+        earlier, then lower id (the database's order)."""
         self._json: bytes | None = None
         self._csv: tuple[str, str] | None = None
         self._html: tuple[Hashable, str] | None = None
         self._sorts: dict[str, Any] | None = None
+
+    @property
+    def unranked(self) -> bool:
+        """A baseline or a disqualified row: on the board without a rank."""
+        return self.baseline or self.disqualified is not None
 
     def row(self, tasks: Sequence[str], conditions: Sequence[str]) -> Row:
         """The row as pages show it, unranked and in no tie group."""
@@ -202,6 +212,7 @@ class Stored:
             csv_safe(row.method or ""),
             row.paper_url or "",
             row.code_url or "",
+            csv_safe(row.disqualified or ""),
         ]
         for key in ("success_rate", "ci_low", "ci_high"):
             after += [f"{row.tasks[t][key]:.4f}" if t in row.tasks else "" for t in tasks]

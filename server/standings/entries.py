@@ -9,8 +9,9 @@ Who a row belongs to (docs/server.md, Teams):
   made), whoever of its members made it; a user not in a team has the row of their best
   submission made outside any team or in a dissolved one; a user in a team has no row of their
   own. A dissolved team has no row.
-Baselines are always rows of their own. Each board version of a phase (docs/server.md,
-Re-evaluation) has rows of its own, from the submissions that count for it.
+Baselines and disqualified submissions are always rows of their own, unranked. Each board
+version of a phase (docs/server.md, Re-evaluation) has rows of its own, from the submissions
+that count for it.
 
 Locks: a refresh locks the user's row, then the rows of the teams they submitted in (id order),
 then the phase's row. A caller that refreshes several users locks all of them first (id order),
@@ -43,9 +44,10 @@ from server.models import (
 )
 
 
-def eligible_for(phase_id: int, board_version: int) -> tuple[Any, ...]:
-    """Conditions on a submission that may stand on this version of the phase's board (as a
-    row or a record)."""
+def standing(phase_id: int, board_version: int) -> tuple[Any, ...]:
+    """Conditions on a submission that may stand on a board of this version of the phase, the
+    official one or the post-deadline one: succeeded, scored, public and not hidden by the
+    organizers (docs/server.md, Organizer tools)."""
     return (
         Submission.phase_id == phase_id,
         Submission.board_version == board_version,
@@ -53,8 +55,27 @@ def eligible_for(phase_id: int, board_version: int) -> tuple[Any, ...]:
         Submission.public.is_(True),
         Submission.hidden.is_(False),
         Submission.score.is_not(None),
+    )
+
+
+def eligible_for(phase_id: int, board_version: int) -> tuple[Any, ...]:
+    """Conditions on a submission that may stand on this version of the phase's official board
+    (as a row or a record)."""
+    return (
+        *standing(phase_id, board_version),
         Submission.post_deadline.is_(False),  # the post-deadline board's, never the official
     )
+
+
+def competing() -> tuple[Any, ...]:
+    """Conditions on an eligible submission that competes for its participant's ranked row:
+    neither a baseline nor disqualified (each of those is an unranked row of its own)."""
+    return (Submission.baseline.is_(False), Submission.disqualified.is_(False))
+
+
+def stands_alone(submission: Submission) -> bool:
+    """Whether an eligible submission is an unranked row of its own (`competing`'s converse)."""
+    return submission.baseline or submission.disqualified
 
 
 _BEST = (Submission.score.desc(), Submission.created_at, Submission.id)
@@ -165,15 +186,15 @@ def _fill_user(
         .where(*eligible_for(phase_id, board_version), Submission.user_id == user_id)
         .order_by(*order)
     ).all()
-    chosen = [s for s in eligible if s.baseline]
-    own = [s for s in eligible if not s.baseline]
+    chosen = [s for s in eligible if stands_alone(s)]
+    own = [s for s in eligible if not stands_alone(s)]
     if team_mode:
         in_team = team_id_of(db, user_id=user_id)
         gone = _dissolved(db, team_ids={s.team_id for s in own if s.team_id is not None})
         own = [] if in_team is not None else [s for s in own if s.team_id in gone | {None}]
     chosen += own[:1]
     for submission in chosen:
-        key = None if submission.baseline else user_id
+        key = None if stands_alone(submission) else user_id
         db.add(_entry(db, submission, username=username, owner_key=key, team=None))
 
 
@@ -205,7 +226,7 @@ def _refresh_team(
         .where(
             *eligible_for(phase_id, board_version),
             Submission.team_id == team_id,
-            Submission.baseline.is_(False),
+            *competing(),
         )
         .order_by(*order)
         .limit(1)
@@ -300,7 +321,9 @@ def summary(db: DB, *, submission: Submission) -> dict[str, Any]:
             }
             successes += row.successes
             episodes += row.episodes
+    disqualified = {"disqualified": submission.moderation_reason or ""}
     return {
+        **(disqualified if submission.disqualified else {}),
         "conditions": condition_means((row.condition, row.success_rate) for row in rows),
         "tasks": tasks,
         # The score's 95% interval: Wilson over the first condition's episodes pooled.

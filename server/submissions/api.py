@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 
-from server.accounts.deps import AdminDep, CallerDep, UserDep
+from server.accounts.deps import CallerDep, UserDep, require_admin
 from server.challenges.service import get_challenge, get_phase
 from server.challenges.tracks import get_track
 from server.kit.deps import DBDep, Id, PageNo, PerPage, limit
@@ -17,10 +17,12 @@ from server.models import Submission
 from server.submissions.deps import services
 from server.submissions.final import mark_final
 from server.submissions.method import Method
+from server.submissions.moderation import rerun
 from server.submissions.position import queue_out
 from server.submissions.schemas import (
     EpisodeOut,
     LogsOut,
+    ReasonIn,
     SubmissionDetail,
     SubmissionOut,
     SubmissionPatch,
@@ -37,7 +39,6 @@ from server.submissions.service import (
     get_visible,
     list_submissions,
     provenance_of,
-    rerun,
     submit,
     task_rows,
     transitions_of,
@@ -46,7 +47,8 @@ from server.submissions.service import (
 router = APIRouter(prefix="/api/v1", responses=ERROR_RESPONSES)
 
 
-def _submission_out(s: Submission) -> SubmissionOut:
+def submission_out(s: Submission) -> SubmissionOut:
+    """A submission as the API shows it."""
     return SubmissionOut(
         id=s.id,
         username=s.user.username,
@@ -60,6 +62,8 @@ def _submission_out(s: Submission) -> SubmissionOut:
         code_url=s.code_url,
         public=s.public,
         hidden=s.hidden,
+        disqualified=s.disqualified,
+        moderation_reason=s.moderation_reason,
         baseline=s.baseline,
         state=s.state,
         reason=s.reason,
@@ -95,7 +99,7 @@ def create_submission(body: SubmitIn, request: Request, user: UserDep, db: DBDep
     )
     db.commit()
     svc.dispatcher.dispatch()  # after the commit; the periodic sweep retries if this fails
-    return _submission_out(submission)
+    return submission_out(submission)
 
 
 @router.get("/submissions", tags=["submissions"])
@@ -114,7 +118,7 @@ def my_submissions(
         page=page,
         per_page=per_page,
     )
-    return Page(items=[_submission_out(s) for s in rows], page=page, per_page=per_page, total=total)
+    return Page(items=[submission_out(s) for s in rows], page=page, per_page=per_page, total=total)
 
 
 @router.get("/submissions/{submission_id}", tags=["submissions"])
@@ -125,7 +129,7 @@ def submission_detail(
     transitions = transitions_of(db, submission_id=s.id)
     rows = task_rows(db, submission=s)
     return SubmissionDetail(
-        **_submission_out(s).model_dump(exclude={"queue"}),
+        **submission_out(s).model_dump(exclude={"queue"}),
         queue=queue_out(db, submission=s, settings=services(request).settings),
         transitions=[
             TransitionOut(
@@ -189,7 +193,7 @@ def cancel_submission(submission_id: Id, user: UserDep, db: DBDep) -> Submission
     s = get_owned(db, submission_id=submission_id, user=user)
     cancel(db, user, s)
     db.commit()
-    return _submission_out(s)
+    return submission_out(s)
 
 
 @router.put("/submissions/{submission_id}/final", tags=["submissions"])
@@ -199,7 +203,7 @@ def mark_submission_final(submission_id: Id, user: UserDep, db: DBDep) -> Submis
     s = get_owned(db, submission_id=submission_id, user=user)
     mark_final(db, user=user, submission=s, final=True)
     db.commit()
-    return _submission_out(s)
+    return submission_out(s)
 
 
 @router.delete("/submissions/{submission_id}/final", tags=["submissions"])
@@ -208,19 +212,24 @@ def unmark_submission_final(submission_id: Id, user: UserDep, db: DBDep) -> Subm
     s = get_owned(db, submission_id=submission_id, user=user)
     mark_final(db, user=user, submission=s, final=False)
     db.commit()
-    return _submission_out(s)
+    return submission_out(s)
 
 
 @router.post("/submissions/{submission_id}/rerun", tags=["admin"])
 def rerun_submission(
-    submission_id: Id, request: Request, admin: AdminDep, db: DBDep
+    submission_id: Id,
+    request: Request,
+    user: UserDep,
+    db: DBDep,
+    body: ReasonIn | None = None,
 ) -> SubmissionOut:
-    """Run an ended submission again as a new attempt (admins)."""
+    """Run an ended submission again as a new attempt (admins; a reason is optional)."""
+    admin = require_admin(user)  # after the body's checks, as every route's
     s = get_owned(db, submission_id=submission_id, user=admin)
-    rerun(db, admin=admin, submission=s)
+    rerun(db, admin=admin, submission=s, reason=body.reason if body is not None else None)
     db.commit()
     services(request).dispatcher.dispatch()
-    return _submission_out(s)
+    return submission_out(s)
 
 
 @router.patch("/submissions/{submission_id}", tags=["submissions"])
@@ -236,8 +245,9 @@ def update_submission(
         public=body.public,
         hidden=body.hidden,
         baseline=body.baseline,
+        reason=body.reason,
         description=body.description,
         method=Method(name=body.method, paper_url=body.paper_url, code_url=body.code_url),
     )
     db.commit()
-    return _submission_out(s)
+    return submission_out(s)

@@ -20,13 +20,14 @@ from server.accounts.deps import PostedDep, ViewerDep
 from server.challenges.charts import TaskSuccess, success_bars
 from server.challenges.service import close_phase, get_challenge, publish_board, shown_phase
 from server.kit.deps import DBDep, Id
-from server.kit.errors import Forbidden
-from server.kit.pages import Viewer, redirect, render, signed_in
-from server.models import EpisodeResultRow, State, Submission, User, utcnow
+from server.kit.pages import Viewer, admin_signed_in, redirect, render, signed_in
+from server.models import EpisodeResultRow, State, Submission, utcnow
+from server.submissions.attempts import attempts_of
 from server.submissions.deps import services
 from server.submissions.final import mark_final, markable
+from server.submissions.moderation import Moderation, moderate, rerun
 from server.submissions.position import queue_out
-from server.submissions.reevaluation import reevaluations_of, start_reevaluation
+from server.submissions.reevaluation import reevaluate, reevaluations_of
 from server.submissions.service import (
     cancel,
     condition_means,
@@ -36,7 +37,6 @@ from server.submissions.service import (
     get_visible,
     owned_or_admin,
     provenance_of,
-    rerun,
     task_rows,
     transitions_of,
     visible_to,
@@ -126,6 +126,7 @@ def outcome(
         "conditions": condition_means(rows),
         "provenance": provenance_of(s),
         "evaluations": evaluations(db, s, who),
+        "attempts": attempts_of(db, submission=s) if private else None,
         "episodes": episodes,
         "episode_total": episode_total,
         "episode_page": episode_page,
@@ -170,14 +171,9 @@ def outcome_fragment(submission_id: Id, request: Request, who: ViewerDep, db: DB
 # Actions ------------------------------------------------------------------------------------
 
 
-def _admin(request: Request, who: Viewer) -> User:
-    user = signed_in(request, who)
-    if not user.is_admin:
-        raise Forbidden("admins only")
-    return user
-
-
 Flag = Annotated[str, Form(pattern="^(true|false)$")]
+Reason = Annotated[str, Form()]
+"""Why an organizer acts (`server.audit.reason_of` says whether one is needed, and how long)."""
 
 
 def _edit(
@@ -188,13 +184,12 @@ def _edit(
     *,
     admin: bool = False,
     public: bool | None = None,
-    hidden: bool | None = None,
     baseline: bool | None = None,
 ) -> Response:
     """An owner's (or, with `admin`, only an admin's) change of a flag, then back to the page."""
-    user = _admin(request, who) if admin else signed_in(request, who)
+    user = admin_signed_in(request, who) if admin else signed_in(request, who)
     s = get_owned(db, submission_id=submission_id, user=user)
-    edit(db, user=user, submission=s, public=public, hidden=hidden, baseline=baseline)
+    edit(db, user=user, submission=s, public=public, baseline=baseline)
     db.commit()
     return redirect(f"/submissions/{s.id}")
 
@@ -216,20 +211,53 @@ def visibility_action(
 
 
 @router.post("/submissions/{submission_id}/rerun")
-def rerun_action(submission_id: Id, request: Request, who: PostedDep, db: DBDep) -> Response:
-    admin = _admin(request, who)
+def rerun_action(
+    submission_id: Id, request: Request, who: PostedDep, db: DBDep, reason: Reason = ""
+) -> Response:
+    admin = admin_signed_in(request, who)
     s = get_owned(db, submission_id=submission_id, user=admin)
-    rerun(db, admin=admin, submission=s)
+    rerun(db, admin=admin, submission=s, reason=reason)
     db.commit()
     services(request).dispatcher.dispatch()
     return redirect(f"/submissions/{s.id}")
 
 
+def _moderate(
+    request: Request, who: Viewer, db: DB, submission_id: int, action: Moderation, reason: str
+) -> Response:
+    admin = admin_signed_in(request, who)
+    s = get_owned(db, submission_id=submission_id, user=admin)
+    moderate(db, by=admin, submission=s, action=action, reason=reason)
+    db.commit()
+    return redirect(f"/submissions/{s.id}")
+
+
 @router.post("/submissions/{submission_id}/hidden")
 def hidden_action(
-    submission_id: Id, request: Request, who: PostedDep, db: DBDep, hidden: Flag
+    submission_id: Id,
+    request: Request,
+    who: PostedDep,
+    db: DBDep,
+    hidden: Flag,
+    reason: Reason = "",
 ) -> Response:
-    return _edit(request, who, db, submission_id, admin=True, hidden=hidden == "true")
+    """An admin hides the submission (with a reason) or shows it again."""
+    action: Moderation = "hide" if hidden == "true" else "unhide"
+    return _moderate(request, who, db, submission_id, action, reason)
+
+
+@router.post("/submissions/{submission_id}/disqualified")
+def disqualified_action(
+    submission_id: Id,
+    request: Request,
+    who: PostedDep,
+    db: DBDep,
+    disqualified: Flag,
+    reason: Reason = "",
+) -> Response:
+    """An admin disqualifies the submission (with a reason) or reinstates it."""
+    action: Moderation = "disqualify" if disqualified == "true" else "reinstate"
+    return _moderate(request, who, db, submission_id, action, reason)
 
 
 @router.post("/submissions/{submission_id}/baseline")
@@ -254,8 +282,8 @@ def final_action(
 def _phase_action(
     request: Request, who: Viewer, db: DB, slug: str, phase: str, act: Any
 ) -> Response:
-    _admin(request, who)
-    act(db, slug=slug, phase=phase)
+    admin = admin_signed_in(request, who)
+    act(db, by=admin, slug=slug, phase=phase)
     db.commit()
     return redirect(f"/challenges/{slug}/leaderboard?{urlencode({'phase': phase})}")
 
@@ -281,10 +309,10 @@ def reevaluate_action(
     slug: str, request: Request, who: PostedDep, db: DBDep, phase: Annotated[str, Form()]
 ) -> Response:
     """An admin re-evaluates a phase's board into a new board version (docs/server.md)."""
-    admin = _admin(request, who)
+    admin = admin_signed_in(request, who)
     challenge = get_challenge(db, slug=slug)
     target = shown_phase(challenge, name=phase)
-    start_reevaluation(db, admin=admin, challenge=challenge, phase=target)
+    reevaluate(db, by=admin, challenge=challenge, phase=target)
     db.commit()
     services(request).dispatcher.dispatch()
     return redirect(f"/challenges/{challenge.slug}/leaderboard?{urlencode({'phase': target.name})}")

@@ -55,7 +55,7 @@ class Timeouts:
 
 
 def timeouts_of(settings: Settings) -> Timeouts:
-    """The timeouts this server's settings give (`MANIEVAL_HEARTBEAT_TIMEOUT_S`)."""
+    """The timeouts this service is configured with (`MANIEVAL_HEARTBEAT_TIMEOUT_S`)."""
     return Timeouts(heartbeat=timedelta(seconds=settings.heartbeat_timeout_s))
 
 
@@ -65,13 +65,26 @@ def _silent_running(timeouts: Timeouts, now: datetime) -> ColumnElement[bool]:
     )
 
 
-def stuck(timeouts: Timeouts, now: datetime) -> ColumnElement[bool]:
-    """Submissions stuck at `now`: running without a report for the heartbeat timeout, or
-    launching for longer than the launch timeout. The next pass ends them as lost."""
+def _lost(timeouts: Timeouts, now: datetime) -> ColumnElement[bool]:
     stale_launch = (Submission.state == State.LAUNCHING) & (
         Submission.updated_at < now - timeouts.launch
     )
     return _silent_running(timeouts, now) | stale_launch
+
+
+def _past_deadline(now: datetime) -> ColumnElement[bool]:
+    return (
+        Submission.state.in_([State.LAUNCHING, State.RUNNING])
+        & Submission.deadline_at.is_not(None)
+        & (Submission.deadline_at < now)
+    )
+
+
+def stuck(timeouts: Timeouts, now: datetime) -> ColumnElement[bool]:
+    """Attempts the reconciler ends at its next pass: past their deadline, running with no
+    heartbeat within the timeout, or launching for longer than the launch timeout (what an
+    organizer's "re-run the stuck" acts on at once: `server.submissions.moderation`)."""
+    return _past_deadline(now) | _lost(timeouts, now)
 
 
 def silent(
@@ -97,7 +110,7 @@ def reconcile(
     out = ReconcileOut()
     with sessions() as db:
         _time_out(db, now, out)
-        for s in db.scalars(select(Submission).where(stuck(timeouts, now))):
+        for s in db.scalars(select(Submission).where(_lost(timeouts, now))):
             requeued = end_lost(db, s, cause=Cause.WORKER_LOST, now=now)
             if requeued is not None:
                 out.lost.append(s.id)
@@ -131,13 +144,7 @@ def reconcile(
 
 
 def _time_out(db: Session, now: datetime, out: ReconcileOut) -> None:
-    for s in db.scalars(
-        select(Submission).where(
-            Submission.state.in_([State.LAUNCHING, State.RUNNING]),
-            Submission.deadline_at.is_not(None),
-            Submission.deadline_at < now,
-        )
-    ):
+    for s in db.scalars(select(Submission).where(_past_deadline(now))):
         reason = "the evaluation exceeded its time budget"
         if transition(db, s.id, s.attempt, State.TIMED_OUT, reason, now=now):
             out.timed_out.append(s.id)

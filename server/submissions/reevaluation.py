@@ -15,7 +15,8 @@ from datetime import datetime
 from sqlalchemy import select
 from sqlalchemy.orm import Session as DB
 
-from server.kit.errors import Conflict, Forbidden
+from server import audit
+from server.kit.errors import Conflict
 from server.models import (
     Challenge,
     LeaderboardEntry,
@@ -26,6 +27,7 @@ from server.models import (
     utcnow,
 )
 from server.submissions.changes import changed
+from server.submissions.moderation import check_organizer
 from server.submissions.states import queued_first
 
 COPIED = (
@@ -42,6 +44,8 @@ COPIED = (
     "code_url",
     "public",
     "hidden",
+    "disqualified",
+    "moderation_reason",
     "baseline",
     "created_at",
     "post_deadline",
@@ -65,18 +69,19 @@ class Started:
     """The re-evaluations' ids, in the board's order."""
 
 
-def start_reevaluation(db: DB, *, admin: User, challenge: Challenge, phase: Phase) -> Started:
-    """An admin re-evaluates a phase's board (`reevaluate`), recorded with their name."""
-    if not admin.is_admin:
-        raise Forbidden("only admins can re-evaluate a board")
-    return reevaluate(db, challenge=challenge, phase=phase, by=f"admin {admin.username}")
-
-
 def reevaluate(
-    db: DB, *, challenge: Challenge, phase: Phase, by: str, now: datetime | None = None
+    db: DB,
+    *,
+    by: User | None,
+    challenge: Challenge,
+    phase: Phase,
+    now: datetime | None = None,
 ) -> Started:
     """Queue a re-evaluation of every entry of the phase's current board into the next board
-    version; `by` says who asked (recorded with each). The caller checks that they may."""
+    version (an organizer's action: `by` an admin, or None for the command line; recorded
+    with each copy and in the audit log)."""
+    check_organizer(by)
+    who = f"admin {by.username}" if by is not None else "the operator"
     now = now or utcnow()
     # One re-evaluation at a time: the phase's row is the lock.
     db.refresh(phase, with_for_update=True)
@@ -103,10 +108,19 @@ def reevaluate(
         s.id: s for s in db.scalars(select(Submission).where(Submission.id.in_(entries))).all()
     }
     copies = [
-        _copy(db, originals[sid], version=version, by=by, now=now)
+        _copy(db, originals[sid], version=version, by=who, now=now)
         for sid in entries
         if sid in originals
     ]
+    audit.record(
+        db,
+        by=by,
+        action="phase.reevaluate",
+        target_kind="phase",
+        target_id=phase.id,
+        challenge_id=challenge.id,
+        detail={"phase": phase.name, "board_version": version, "submissions": copies},
+    )
     db.flush()
     return Started(phase=phase.name, board_version=version, submissions=copies)
 

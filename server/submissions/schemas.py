@@ -4,11 +4,12 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated
+from typing import Annotated, Any
 
 from pydantic import BaseModel, Field
 
 from evaluator.results import Provenance
+from server.audit import REASON_MAX
 from server.kit.schemas import InBody
 from server.models import State
 from server.submissions.method import METHOD_MAX, METHOD_PATTERN, URL_MAX, URL_PATTERN
@@ -42,7 +43,14 @@ class SubmitIn(InBody):
 
 class SubmissionPatch(InBody):
     public: bool | None = None
-    hidden: bool | None = Field(default=None, description="admins only")
+    hidden: bool | None = Field(
+        default=None, description="admins only; hiding takes a `reason` (POST .../hide)"
+    )
+    reason: str | None = Field(
+        default=None,
+        max_length=REASON_MAX,
+        description="admins only: why it is hidden, which its owner is shown",
+    )
     baseline: bool | None = Field(default=None, description="admins only")
     description: str | None = Field(default=None, max_length=2000)
     method: MethodName | None = Field(
@@ -109,6 +117,12 @@ class SubmissionOut(BaseModel):
     code_url: str | None
     public: bool
     hidden: bool
+    disqualified: bool = Field(
+        default=False, description="on its board unranked, by the organizers' decision"
+    )
+    moderation_reason: str | None = Field(
+        default=None, description="why the organizers hid or disqualified it"
+    )
     baseline: bool
     state: State
     reason: str
@@ -163,3 +177,50 @@ class LogsOut(BaseModel):
     submission_id: int
     attempt: int
     log_tail: str
+
+
+# An organizer's actions (server/submissions/admin_api.py) ---------------------------------
+
+
+class ReasonIn(InBody):
+    reason: str = Field(
+        default="",
+        max_length=REASON_MAX,
+        description="why (at most 2000 characters): required to hide or disqualify, and shown "
+        "to the submission's owner; optional to undo either or to re-run, kept in the audit log",
+    )
+
+
+class RerunStuckIn(ReasonIn):
+    challenge: str | None = Field(
+        default=None, max_length=64, description="only this challenge's (none: every one's)"
+    )
+
+
+class RerunStuckOut(BaseModel):
+    requeued: list[int] = Field(description="the submissions queued again, as new attempts")
+
+
+class ReevaluationOut(BaseModel):
+    phase: str
+    board_version: int = Field(description="the board version the re-evaluations count for")
+    submissions: list[int] = Field(description="the re-evaluations' ids, in the board's order")
+
+
+class AuditRecordOut(BaseModel):
+    id: int
+    at: datetime
+    actor: str = Field(description="the admin's user name, or cli:LOGIN for a command")
+    action: str = Field(description="domain.verb: submission.hide, phase.close, ...")
+    target_kind: str
+    target_id: int | None
+    challenge: str | None = Field(description="the challenge it concerns, by slug")
+    reason: str
+    detail: dict[str, Any] | None
+
+
+class AuditPage(BaseModel):
+    items: list[AuditRecordOut] = Field(description="newest first")
+    next_before_id: int | None = Field(
+        description="pass as before_id for the next (older) page; null: no more"
+    )

@@ -1,5 +1,6 @@
-"""Submissions: accept, quota, who may see what, cancel, re-run and edit; and the reads the
-API and the pages show (lists, timelines, results).
+"""Submissions: accept, quota, who may see what, cancel and edit; and the reads the API and
+the pages show (lists, timelines, results). An organizer's actions on them (re-run, hide,
+disqualify) are :mod:`server.submissions.moderation`.
 
 State changes go through :mod:`server.submissions.states`; work for the queue is written to the
 ``outbox`` in the same transaction and sent after the commit (:mod:`server.submissions.outbox`).
@@ -35,10 +36,10 @@ from server.models import (
     utcnow,
 )
 from server.standings.entries import refresh
-from server.standings.versions import publish_when_done
 from server.submissions.changes import changed
 from server.submissions.method import Method
-from server.submissions.states import new_attempt, queued_first, transition
+from server.submissions.moderation import Moderation, flag_baseline, moderate
+from server.submissions.states import queued_first, transition
 
 
 @dataclass(frozen=True)
@@ -255,21 +256,18 @@ def edit(
     public: bool | None = None,
     hidden: bool | None = None,
     baseline: bool | None = None,
+    reason: str | None = None,
     description: str | None = None,
     method: Method | None = None,
 ) -> None:
-    """The owner changes visibility, description and method; admins also hide and flag
-    baselines. The phase's leaderboard is recomputed for the submission's owner."""
+    """The owner changes visibility, description and method; admins also hide (with a
+    `reason`) and flag baselines, as organizer actions (`server.submissions.moderation`). The
+    phase's leaderboard is recomputed for the submission's owner."""
     if not owned_or_admin(submission, user):
         raise NotFound(f"no submission {submission.id}")
     if (hidden is not None or baseline is not None) and not user.is_admin:
         raise Forbidden("only admins can hide submissions or flag baselines")
-    changes: dict[str, bool | str | None] = {
-        "public": public,
-        "hidden": hidden,
-        "baseline": baseline,
-        "description": description,
-    }
+    changes: dict[str, bool | str | None] = {"public": public, "description": description}
     for name, value in changes.items():
         if value is not None:
             setattr(submission, name, value)
@@ -278,16 +276,11 @@ def edit(
     db.flush()
     changed(db, submission.id)  # open views check again who may see it
     refresh(db, phase_id=submission.phase_id, user_id=submission.user_id)
-    if hidden:  # a re-evaluation hidden after an error holds its version no longer
-        publish_when_done(db, phase_id=submission.phase_id)
-
-
-def rerun(db: DB, *, admin: User, submission: Submission, now: datetime | None = None) -> None:
-    """An admin runs an ended submission again, as a new attempt with its own results."""
-    if not admin.is_admin:
-        raise Forbidden("only admins can re-run submissions")
-    if not new_attempt(db, submission, "re-run by an admin", now=now):
-        raise Conflict(f"submission {submission.id} has not ended; cancel it first")
+    if baseline is not None:
+        flag_baseline(db, by=user, submission=submission, baseline=baseline)
+    if hidden or (hidden is False and submission.hidden):  # unhiding twice changes nothing
+        action: Moderation = "hide" if hidden else "unhide"
+        moderate(db, by=user, submission=submission, action=action, reason=reason)
 
 
 # Reads ----------------------------------------------------------------------------------------
@@ -368,10 +361,11 @@ def task_rows(db: DB, *, submission: Submission) -> list[TaskOutcome]:
         )
         .order_by(TaskResultRow.id)
     )
-    return [_outcome(row) for row in rows]
+    return [task_outcome(row) for row in rows]
 
 
-def _outcome(row: TaskResultRow) -> TaskOutcome:
+def task_outcome(row: TaskResultRow) -> TaskOutcome:
+    """A stored task row as it is shown (a rate only where every planned episode ran)."""
     complete = row.episodes_ran == row.episodes
     return TaskOutcome(
         condition=row.condition,

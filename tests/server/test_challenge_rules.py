@@ -135,7 +135,7 @@ def test_after_the_close_a_submission_goes_to_the_post_deadline_board(
     challenge = _challenge(db, tmp_path)
     alice, bob = make_user(db, "alice"), make_user(db, "bob")
     on_time = _done(db, alice, challenge, [True, False])
-    close_phase(db, slug=challenge.slug, phase="test")
+    close_phase(db, by=None, slug=challenge.slug, phase="test")
     db.commit()
     late = _done(db, bob, challenge, [True, True])
     assert late.post_deadline
@@ -145,7 +145,7 @@ def test_after_the_close_a_submission_goes_to_the_post_deadline_board(
         mark_final(db, user=bob, submission=late, final=True)
     with pytest.raises(Conflict, match="closed at"):
         mark_final(db, user=alice, submission=on_time, final=True)
-    publish_board(db, slug=challenge.slug, phase="test")
+    publish_board(db, by=None, slug=challenge.slug, phase="test")
     rows = post_deadline_board(db, slug=challenge.slug, phase="test", viewer=None)
     assert [(r.rank, r.submission_id) for r in rows] == [(1, late.id)]
 
@@ -154,7 +154,7 @@ def test_after_the_close_a_phase_that_refuses_late_ones_refuses(
     db: Session, tmp_path: Path
 ) -> None:
     challenge = _challenge(db, tmp_path, rules="after_close: refuse")
-    close_phase(db, slug=challenge.slug, phase="test")
+    close_phase(db, by=None, slug=challenge.slug, phase="test")
     db.commit()
     with pytest.raises(Conflict, match="closed at"):
         queue_submission(db, make_user(db, "alice"), challenge, "test")
@@ -175,7 +175,7 @@ def test_a_hidden_board_shows_each_their_own_rows_until_published(
     alices = as_seen_by(db, board, user=alice)
     assert [(s.submission_id, alices.place(0)[0]) for s in alices.rows] == [(mine.id, None)]
     assert as_seen_by(db, board, user=organizer).total == 2
-    publish_board(db, slug=challenge.slug, phase="test")
+    publish_board(db, by=None, slug=challenge.slug, phase="test")
     db.commit()
     board = boards.current_in(db, slug=challenge.slug, phase="test")
     assert not board.hidden
@@ -289,7 +289,7 @@ def test_no_official_submission_lands_after_the_close(
         t.start()
     assert submitted.wait(timeout=60)
     with committed_sessions() as db:
-        phase = close_phase(db, slug=slug, phase="test")
+        phase = close_phase(db, by=None, slug=slug, phase="test")
         db.commit()
         closes_at = phase.closes_at
     closed.set()

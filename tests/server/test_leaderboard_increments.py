@@ -13,12 +13,12 @@ from typing import Any
 import pytest
 from sqlalchemy.orm import Session
 
+from server.kit.spreadsheets import csv_safe
 from server.leaderboard import ties
 from server.leaderboard.pages import sort_value
 from server.leaderboard.schemas import LeaderboardRowOut
 from server.leaderboard.service import phase_versions
 from server.leaderboard.snapshot import Snapshot, Snapshots, advance, read_whole
-from server.leaderboard.stored import csv_safe
 from server.models import Challenge, State, Submission, User, team_of
 from server.standings.entries import refresh
 from server.submissions.reports import report_final, report_state

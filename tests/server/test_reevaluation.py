@@ -14,14 +14,13 @@ from evaluator.results import SuiteRef
 from server.challenges.quota import quota_use
 from server.kit.errors import Conflict, Forbidden
 from server.models import Challenge, Phase, State, Submission, User, utcnow
+from server.submissions.moderation import moderate, rerun
 from server.submissions.reevaluation import (
     NothingToReevaluate,
     Started,
     reevaluate,
-    start_reevaluation,
 )
 from server.submissions.reports import report_final, report_state
-from server.submissions.service import edit, rerun
 from testkit.factories import (
     RecordingQueue,
     make_challenge,
@@ -87,7 +86,7 @@ def entries(db: Session, strict: Challenge, people: dict[str, User]) -> tuple[in
 
 
 def started(db: Session, challenge: Challenge) -> Started:
-    done = reevaluate(db, challenge=challenge, phase=dev(db, challenge), by="the test")
+    done = reevaluate(db, by=None, challenge=challenge, phase=dev(db, challenge))
     db.commit()
     return done
 
@@ -161,7 +160,8 @@ def test_a_rerun_that_ends_in_the_services_error_holds_the_new_version_until_an_
     assert report_final(db, first.id, 2, State.ERROR, "the cluster again")
     db.commit()
     assert dev(db, strict).board_version == 1
-    edit(db, user=people["judge"], submission=first, hidden=True)  # the admin gives up on it
+    gives_up = "the cluster fails it every time"  # the admin gives up on it
+    moderate(db, by=people["judge"], submission=first, action="hide", reason=gives_up)
     db.commit()
     assert dev(db, strict).board_version == 2
     assert board(client) == [second.id]
@@ -171,13 +171,13 @@ def test_a_reevaluation_is_refused_while_one_runs_and_for_an_empty_board(
     db: Session, strict: Challenge, people: dict[str, User]
 ) -> None:
     with pytest.raises(NothingToReevaluate, match="no entries"):
-        reevaluate(db, challenge=strict, phase=dev(db, strict), by="the test")
+        reevaluate(db, by=None, challenge=strict, phase=dev(db, strict))
     entries(db, strict, people)
     started(db, strict)
     with pytest.raises(Conflict, match="into board version 2"):
-        reevaluate(db, challenge=strict, phase=dev(db, strict), by="the test")
+        reevaluate(db, by=None, challenge=strict, phase=dev(db, strict))
     with pytest.raises(Forbidden):
-        start_reevaluation(db, admin=people["alice"], challenge=strict, phase=dev(db, strict))
+        reevaluate(db, by=people["alice"], challenge=strict, phase=dev(db, strict))
 
 
 def reevaluate_by_form(client: TestClient, phase: str = "dev") -> int:

@@ -254,7 +254,8 @@ def test_leaderboard_best_per_user_ties_by_time_baselines_and_csv(
     assert task["success_rate"] == 1.0
     assert 0 < task["ci_low"] < 1.0
     # Hiding alice's best falls back to her next best; making it private does the same.
-    client.patch(f"{API}/submissions/{a2['id']}", json={"hidden": True}, headers=root)
+    hide = {"hidden": True, "reason": "the same image as her first"}
+    client.patch(f"{API}/submissions/{a2['id']}", json=hide, headers=root)
     board = client.get(f"{API}/challenges/server-tiny/leaderboard").json()
     assert [(r["username"], r["submission_id"]) for r in board["items"][:2]] == [
         ("bob", b1["id"]),

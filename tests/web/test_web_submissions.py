@@ -188,7 +188,8 @@ def test_only_admins_rerun_hide_and_flag_baselines(
     board = "/challenges/server-tiny/leaderboard?phase=dev"
     assert act(people["judge"], s, "baseline", baseline="true") == 303
     assert '<span class="badge">baseline</span>' in client.get(board).text
-    assert act(people["judge"], s, "hidden", hidden="true") == 303
+    assert act(people["judge"], s, "hidden", hidden="true") == 422  # say why
+    assert act(people["judge"], s, "hidden", hidden="true", reason="a copy of #1") == 303
     assert f"/submissions/{s.id}" not in client.get(board).text
     assert people["bob"].get(f"/submissions/{s.id}").status_code == 404
     assert act(people["judge"], s, "rerun") == 303
