@@ -3,35 +3,23 @@ submission's page, through the API and the web forms; each action's audit record
 
 from __future__ import annotations
 
-import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session
 
 from server import audit
 from server.models import Challenge, State, Submission, User
 from server.submissions.reports import report_final, report_state
-from testkit.factories import make_challenge, make_user, result_doc, token_for
+from testkit.factories import result_doc
+from tests.server.organizers import (  # noqa: F401 - pytest fixtures
+    API,
+    fixture_people,
+    fixture_tiny,
+    fixture_tokens,
+)
 from tests.web.helpers import WEB_CONDITIONS, browser, csrf_of, finished
 
-API = "/api/v1"
 BOARD = f"{API}/challenges/server-tiny/leaderboard?phase=dev"
 WHY = "the policy reads the seed from the environment"
-
-
-@pytest.fixture
-def tiny(db: Session) -> Challenge:
-    return make_challenge(db, quota_per_day=20, quota_concurrent=5)
-
-
-@pytest.fixture
-def people(client: TestClient, db: Session) -> dict[str, User]:
-    found = {name: make_user(db, name) for name in ("alice", "bob")}
-    return found | {"judge": make_user(db, "judge", admin=True)}
-
-
-@pytest.fixture
-def tokens(client: TestClient, people: dict[str, User]) -> dict[str, dict[str, str]]:
-    return {name: token_for(client, name) for name in people}
 
 
 def rows(client: TestClient) -> list[tuple[int | None, str, int, str | None]]:

@@ -7,7 +7,6 @@ import csv
 import io
 from datetime import timedelta
 
-import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import update
 from sqlalchemy.orm import Session
@@ -15,27 +14,16 @@ from sqlalchemy.orm import Session
 from server import audit
 from server.models import Challenge, State, Submission, User, utcnow
 from server.submissions.reports import report_state
-from testkit.factories import RecordingQueue, make_challenge, make_user, queue_submission, token_for
+from testkit.factories import RecordingQueue, queue_submission
+from tests.server.organizers import (  # noqa: F401 - pytest fixtures
+    API,
+    fixture_people,
+    fixture_tiny,
+    fixture_tokens,
+)
 from tests.web.helpers import finished
 
-API = "/api/v1"
 EXPORT = f"{API}/admin/challenges/server-tiny/export"
-
-
-@pytest.fixture
-def tiny(db: Session) -> Challenge:
-    return make_challenge(db, quota_per_day=20, quota_concurrent=5)
-
-
-@pytest.fixture
-def people(client: TestClient, db: Session) -> dict[str, User]:
-    found = {name: make_user(db, name) for name in ("alice", "bob")}
-    return found | {"judge": make_user(db, "judge", admin=True)}
-
-
-@pytest.fixture
-def tokens(client: TestClient, people: dict[str, User]) -> dict[str, dict[str, str]]:
-    return {name: token_for(client, name) for name in people}
 
 
 def running(db: Session, user: User, challenge: Challenge, **values: object) -> Submission:
