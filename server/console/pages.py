@@ -18,11 +18,12 @@ from server import audit
 from server.accounts.deps import PostedDep, ViewerDep
 from server.challenges import service as challenges
 from server.challenges.tracks import track_name, tracks_of
+from server.console.forms import act_and_return
 from server.console.overview import overview, phase_status
 from server.console.records import challenge_slugs, shown
 from server.kit.deps import DBDep, services
 from server.kit.errors import AppError, Invalid
-from server.kit.pages import Viewer, admin_signed_in, redirect, render
+from server.kit.pages import Viewer, admin_signed_in, render
 from server.models import AuditRecord, utcnow
 from server.submissions.reconcile import timeouts_of
 
@@ -158,15 +159,16 @@ def _attempt(
     form: dict[str, str] | None = None,
     error_phase: str = "",
 ) -> Response:
-    """Do `act` and commit, then back to the settings with a notice; on a refusal the page
-    again with its problem by the form that caused it."""
-    try:
-        act()
-        db.commit()
-    except AppError as exc:
-        db.rollback()
-        return _settings_page(request, who, db, slug, error=exc, form=form, error_phase=error_phase)
-    return redirect(f"/admin/challenges/{slug}?{urlencode({'done': done})}")
+    """`act_and_return` on the challenge's settings page."""
+    return act_and_return(
+        db,
+        act,
+        page=f"/admin/challenges/{slug}",
+        done=done,
+        refused=lambda exc: _settings_page(
+            request, who, db, slug, error=exc, form=form, error_phase=error_phase
+        ),
+    )
 
 
 @router.post("/admin/challenges/{slug}/settings")

@@ -15,11 +15,12 @@ from sqlalchemy.orm import Session as DB
 from server import audit
 from server.accounts import service as accounts
 from server.accounts.deps import PostedDep, ViewerDep
+from server.console.forms import act_and_return
 from server.console.records import shown
 from server.console.users import disable_account
 from server.kit.deps import DBDep, Id, PageNo
 from server.kit.errors import AppError
-from server.kit.pages import Viewer, admin_signed_in, redirect, render
+from server.kit.pages import Viewer, admin_signed_in, render
 
 router = APIRouter(include_in_schema=False)
 
@@ -106,13 +107,14 @@ def _attempt(
     done: str,
     form: dict[str, str] | None = None,
 ) -> Response:
-    try:
-        act()
-        db.commit()
-    except AppError as exc:
-        db.rollback()
-        return _user_page(request, who, db, user_id, error=exc, form=form)
-    return redirect(f"/admin/users/{user_id}?{urlencode({'done': done})}")
+    """`act_and_return` on the account's page."""
+    return act_and_return(
+        db,
+        act,
+        page=f"/admin/users/{user_id}",
+        done=done,
+        refused=lambda exc: _user_page(request, who, db, user_id, error=exc, form=form),
+    )
 
 
 Reason = Annotated[str, Form(max_length=4000)]
