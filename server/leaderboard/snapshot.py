@@ -53,6 +53,10 @@ INCREMENT_SHARE = 0.5
 INCREMENT_MIN = 64
 """Past this share of the board (and this many rows) come or gone, a snapshot is read whole
 again."""
+EXEMPT_MIN_ROWS = 100
+"""A phase's first board is exempted from the cyclic garbage collector (`_exempt_from_gc`) when
+it has at least this many rows: exempting costs a full collection, which a board of a few rows
+never pays back."""
 STABLE_IDS = frozenset({"postgresql"})
 """Databases that never give a deleted row's id to a new one (a sequence), so that an id always
 means one row. SQLite reuses the highest ids once their rows are gone: there, a snapshot is
@@ -255,8 +259,8 @@ class Snapshots:
                     board_version=shown,
                     held=same,
                 )
-                if held is None:  # the phase's first board in this process
-                    _exempt_from_gc()
+                if held is None and len(read.rows) >= EXEMPT_MIN_ROWS:
+                    _exempt_from_gc()  # the phase's first board in this process
             with self._lock:
                 kept = self._boards.get(key)
                 if kept is None or kept.phase_id != read.phase_id or kept.version <= read.version:
@@ -273,9 +277,10 @@ def _exempt_from_gc() -> None:
     garbage collector. A board is tens of thousands of long-lived objects that every full
     collection walked, pausing each request in flight for 100 ms and more under load
     (bench/leaderboard_load.py: p95 45-54 ms before, 28-38 ms after). Done once per phase and
-    process, at its first board: what else lives at that moment and later becomes garbage
-    with cycles is never collected, so it is not done again. Garbage with cycles is collected
-    first; rows hold no cycles, so a board dropped later is freed by reference counts."""
+    process, at its first board if it has `EXEMPT_MIN_ROWS` rows: what else lives at that
+    moment and later becomes garbage with cycles is never collected, so it is not done again.
+    Garbage with cycles is collected first; rows hold no cycles, so a board dropped later is
+    freed by reference counts."""
     gc.collect()
     gc.freeze()
 
