@@ -16,7 +16,7 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -331,11 +331,13 @@ class ServerAPI:
     ) -> httpx.Response:
         """One request, retried on outages for up to `patience` seconds (0: tried once);
         `content` (bytes, media type) is sent as the body instead of JSON."""
+        request = f"{method} {self._http.base_url.path.rstrip('/')}{path}"
         retrying = Retrying(
             retry=retry_if_exception_type(_Retryable),
             wait=_wait,
             stop=stop_after_delay(patience) | stop_when_event_set(self.stop),
             sleep=self._sleep,
+            before_sleep=_say_unavailable(request),
             reraise=True,
         )
         try:
@@ -383,6 +385,18 @@ def _retry_after(value: str | None) -> float | None:
         return max(0.0, float(value)) if value is not None else None
     except ValueError:
         return None
+
+
+def _say_unavailable(request: str) -> Callable[[RetryCallState], None]:
+    """One WARNING per refused attempt that will be tried again, with the wait: an outage
+    shows in the worker's log as it happens, not only once the patience runs out."""
+
+    def say(state: RetryCallState) -> None:
+        exc = state.outcome.exception() if state.outcome is not None else None
+        wait = state.next_action.sleep if state.next_action is not None else 0.0
+        log.warning("server unavailable for %s: %s; trying again in %.1f s", request, exc, wait)
+
+    return say
 
 
 _jittered = wait_random_exponential(multiplier=0.5, max=WAIT_CAP_S)

@@ -6,6 +6,11 @@ and a real `celery worker` process started with no database URL and no secret ke
 reaches the server only through /internal/v1. No reconciler runs here: a wake-up or a report
 that the worker dropped would never be made up for, and the test would wait in vain.
 
+Each outage lasts until the worker has met it: until its log says the request the round is
+about was refused (`worker.server_api` logs each refused attempt it will try again), never a
+fixed time. The database is then started again, and the worker's retry, after the server's
+`Retry-After`, gets through.
+
 The figures of each round (how long a queued submission waited for its claim once the
 database was back, how many final reports were delivered after an outage) are printed
 (`pytest -s`) and written to `$MANIEVAL_ARTEFACTS/outages.txt` when that is set.
@@ -13,11 +18,11 @@ database was back, how many final reports were delivered after an outage) are pr
 
 from __future__ import annotations
 
+import importlib
 import os
 import signal
 import subprocess
 import threading
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -35,7 +40,6 @@ from internal_api.schemas import FINAL_STATES
 from manieval.service import Service
 from server.kit.settings import Settings
 from server.models import State, Submission, Transition, utcnow
-from server.submissions.work import assignment
 from testkit.factories import PASSWORD, embedded_database
 from testkit.waiting import poll, until
 from testkit.workers import public_api
@@ -52,10 +56,11 @@ from tests.worker.redis_server import Redis, free_port
 pytestmark = [pytest.mark.sim, pytest.mark.long, pytest.mark.timeout(900)]
 ROUNDS = 10
 CLAIM_ROUNDS = 3  # each round stops the database at the same point of a claim
-OUTAGE_S = 5.0
+MEET_S = 120.0  # how long an outage may wait for the worker to meet it: a bound, not a time
 FINAL = {state.value for state in FINAL_STATES}  # as the API spells them
 REPO = Path(__file__).resolve().parents[2]
-# A run of the scripted policy long enough to span an outage of OUTAGE_S (about 15 s here).
+# A run of the scripted policy long enough that an outage can begin after its first episode
+# (of 8) and the test see the rest of it run while the database is down.
 MID = {"max_episode_steps: 12, episodes: 2": "max_episode_steps: 60, episodes: 4"}
 
 
@@ -177,16 +182,82 @@ def database_down(stack: Stack) -> Iterator[None]:
         stack.pg.start()
 
 
-def outage(stack: Stack) -> tuple[datetime, datetime]:
-    """Stop the database for OUTAGE_S; every submit meanwhile is a 503 with Retry-After.
-    Returns (when it stopped, when it was back)."""
-    stopped = utcnow()
-    with database_down(stack):
-        refused(stack)
-        time.sleep(OUTAGE_S / 2)
-        refused(stack)
-        time.sleep(OUTAGE_S / 2)
-    return stopped, utcnow()
+class Trap:
+    """The server stops the database itself inside its next call of `target` once armed, so
+    that this one request fails as the database goes (a 503): a point of a request that no
+    stop from outside could hit."""
+
+    def __init__(self, stack: Stack, monkeypatch: pytest.MonkeyPatch, target: str) -> None:
+        module, name = target.rsplit(".", 1)
+        original = getattr(importlib.import_module(module), name)
+        self.armed, self.sprung = threading.Event(), threading.Event()
+        self.stopped = utcnow()
+
+        def dying(*args: Any, **kwargs: Any) -> Any:
+            if self.armed.is_set():
+                self.armed.clear()
+                self.stopped = utcnow()
+                stack.pg.stop()
+                self.sprung.set()
+            return original(*args, **kwargs)
+
+        monkeypatch.setattr(target, dying)
+
+    def arm(self) -> None:
+        self.sprung.clear()
+        self.armed.set()
+
+    def wait(self, what: str) -> datetime:
+        """Until it stopped the database; returns when."""
+        assert self.sprung.wait(MEET_S), f"gave up after {MEET_S:g} s waiting for {what}"
+        return self.stopped
+
+    @contextmanager
+    def armed_once(self, stack: Stack) -> Iterator[None]:
+        """Armed inside the block; the database it stopped is started again however the
+        block ends."""
+        self.arm()
+        try:
+            yield
+        finally:
+            self.armed.clear()
+            if self.sprung.is_set():
+                stack.pg.start()
+
+
+def log_size(stack: Stack) -> int:
+    return stack.worker_log.stat().st_size
+
+
+def worker_said(stack: Stack, since: int) -> str:
+    """What the worker logged after its log was `since` bytes long."""
+    with stack.worker_log.open("rb") as f:
+        f.seek(since)
+        return f.read().decode(errors="replace")
+
+
+def worker_says(stack: Stack, since: int, text: str) -> None:
+    """Until the worker has logged `text` after its log was `since` bytes long."""
+
+    def said() -> bool:
+        assert stack.worker.poll() is None, f"the worker exited:\n{worker_said(stack, since)}"
+        return text in worker_said(stack, since)
+
+    until(
+        said,
+        lambda: f"the worker to log {text!r}; it logged:\n{worker_said(stack, since)[-4000:]}",
+        timeout=MEET_S,
+        every=0.05,
+    )
+
+
+def refused_by_the_worker(method: str, path: str) -> str:
+    """The worker's line for a request of its that met an outage (`worker.server_api`)."""
+    return f"server unavailable for {method} /internal/v1{path}"
+
+
+def spooled(stack: Stack, sid: int) -> Path:
+    return stack.worker_log.parent / "worker" / "spool" / f"{sid}-1.json"
 
 
 def at(value: object) -> datetime:
@@ -228,24 +299,38 @@ def spool_empty(stack: Stack) -> None:
     assert not list(stack.worker_log.parent.glob("worker/spool/*.json"))
 
 
-def test_the_database_stops_during_runs_and_their_final_reports(stack: Stack) -> None:
-    after = 0
+def test_the_database_stops_during_runs_and_their_final_reports(
+    stack: Stack, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each run ends and its final report reaches the server as the database stops (inside
+    the report's request: an outage begun from outside while the run runs is met by the
+    trajectory uploads that come before the report, and the report itself would be sent only
+    once it is over). The worker is refused, keeps the report in its spool, and delivers it
+    once the database is back: the run succeeded, once."""
+    trap = Trap(stack, monkeypatch, "server.submissions.internal.report_final")
     for n in range(1, ROUNDS + 1):
-        sid = submit(stack)
-        wait_for(stack, sid, lambda body: body["state"] in {"running"} | FINAL)
-        stopped, back = outage(stack)  # the tiny evaluation ends meanwhile: its report waits
+        since = log_size(stack)
+        with trap.armed_once(stack):
+            sid = submit(stack)
+            stopped = trap.wait(f"the final report of submission {sid}")
+            refused(stack)
+            worker_says(
+                stack, since, refused_by_the_worker("POST", f"/submissions/{sid}/attempts/1/final")
+            )
+            assert spooled(stack, sid).is_file(), "the refused final report is not in the spool"
+            refused(stack)
+        back = utcnow()
         body = final(stack, sid)
         assert body["state"] == "succeeded", body
         ran_once(stack, sid)
-        waited = at(body["finished_at"]) >= stopped
-        after += waited
-        delivered = (at(body["finished_at"]) - back).total_seconds()
+        assert at(body["finished_at"]) > stopped  # what ended it was the report sent again
+        assert not spooled(stack, sid).exists()
         stack.note(
-            f"final report round {n:2}: database down {(back - stopped).total_seconds():.1f} s; "
-            + (f"report delivered {delivered:+.1f} s after it was back" if waited else
-               "report delivered before the outage")
-        )  # fmt: skip
-    stack.note(f"final reports delivered after an outage: {after} of {ROUNDS}")
+            f"final report round {n:2}: refused, kept in the spool through "
+            f"{(back - stopped).total_seconds():.1f} s of outage, delivered "
+            f"{(at(body['finished_at']) - back).total_seconds():+.1f} s after it was back"
+        )
+    stack.note(f"final reports kept through an outage and delivered after it: {ROUNDS}")
     spool_empty(stack)
 
 
@@ -256,16 +341,30 @@ def test_the_database_stops_in_the_middle_of_longer_runs(stack: Stack) -> None:
         body = wait_for(
             stack, sid, lambda b: b["state"] in FINAL or bool((b["progress"] or {}).get("done"))
         )
+        assert body["state"] == "running", f"the run ended before its outage: {body}"
         progress = body["progress"]
-        stopped, back = outage(stack)
+        since, stopped = log_size(stack), utcnow()
+        with database_down(stack):
+            refused(stack)
+            # The evaluation goes on to its end while the database is down: the first of its
+            # trajectory uploads, which follow its last episode, is refused.
+            worker_says(
+                stack,
+                since,
+                refused_by_the_worker("PUT", f"/submissions/{sid}/attempts/1/trajectories/"),
+            )
+            refused(stack)
+        back = utcnow()
+        said = worker_said(stack, since)
+        assert f"progress of submission {sid} not delivered" in said  # its heartbeats met it
         body = final(stack, sid)
         assert body["state"] == "succeeded", body
         ran_once(stack, sid)
         after += at(body["finished_at"]) >= stopped
         stack.note(
-            f"mid-run round {n:2}: database down {(back - stopped).total_seconds():.1f} s after "
-            f"{progress['done']} of {progress['total']} episodes; the run ended "
-            f"{(at(body['finished_at']) - back).total_seconds():+.1f} s after it was back"
+            f"mid-run round {n:2}: database down {(back - stopped).total_seconds():.1f} s from "
+            f"{progress['done']} of {progress['total']} episodes to the run's end; the run "
+            f"ended {(at(body['finished_at']) - back).total_seconds():+.1f} s after it was back"
         )
     stack.note(f"longer runs ending after their outage: {after} of {ROUNDS}")
     spool_empty(stack)
@@ -276,6 +375,7 @@ def test_a_wake_up_delivered_during_an_outage_is_not_lost(stack: Stack) -> None:
     delays: list[float] = []
     for n in range(1, ROUNDS + 1):
         idle(stack)  # no stray wake-up of an earlier round may stand in for this one
+        since = log_size(stack)
         os.killpg(stack.worker.pid, signal.SIGSTOP)  # the wake-up waits in the broker
         try:
             sid = submit(stack)
@@ -290,7 +390,7 @@ def test_a_wake_up_delivered_during_an_outage_is_not_lost(stack: Stack) -> None:
                 timeout=60,
             )
             refused(stack)
-            time.sleep(OUTAGE_S)
+            worker_says(stack, since, refused_by_the_worker("POST", "/claims"))
         finally:
             stack.pg.start()
         back = utcnow()
@@ -314,28 +414,15 @@ def test_the_database_stops_between_a_claim_and_its_answer(
     evaluation when the database stops: the claim must not be half made (a submission
     `launching` for a worker that got a 503 would wait for the reconciler's launch timeout;
     none runs here). The worker's retry claims it once the database is back."""
-    armed, down = threading.Event(), threading.Event()
-
-    def dying(db: Session, **kwargs: Any) -> Any:
-        if armed.is_set():
-            armed.clear()
-            stack.pg.stop()
-            down.set()
-        return assignment(db, **kwargs)
-
-    monkeypatch.setattr("server.submissions.internal.assignment", dying)
+    trap = Trap(stack, monkeypatch, "server.submissions.internal.assignment")
     for n in range(1, CLAIM_ROUNDS + 1):
         idle(stack)
-        down.clear()
-        armed.set()
-        try:
+        since = log_size(stack)
+        with trap.armed_once(stack):
             sid = submit(stack)
-            assert down.wait(120), "the worker never claimed"
+            trap.wait("the worker's claim")
             refused(stack)
-            time.sleep(OUTAGE_S)
-        finally:
-            armed.clear()
-            stack.pg.start()
+            worker_says(stack, since, refused_by_the_worker("POST", "/claims"))
         back = utcnow()
         body = wait_for(stack, sid, lambda b: b["state"] in FINAL, timeout=120)
         assert body["state"] == "succeeded", body

@@ -7,6 +7,8 @@ real server behind the same client is exercised by the Celery, embedded and faul
 from __future__ import annotations
 
 import json
+import logging
+import re
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -98,6 +100,27 @@ def test_a_claim_waits_out_a_database_outage(tmp_path: Path) -> None:
     assert api.claim("w1") is None
     assert len(seen) == 3
     assert json.loads(seen[0].content) == {"worker": "w1"}
+
+
+def test_each_refused_attempt_that_will_be_retried_is_logged_with_its_wait(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    answers: list[Answer] = [
+        httpx.Response(503, headers={"Retry-After": "0"}, text="database down"),
+        refused(),
+        httpx.Response(204),
+    ]
+    api = client(tmp_path, answers, [], claim_patience_s=60)
+    once = client(tmp_path, [httpx.Response(503)], [])
+    with caplog.at_level(logging.WARNING, logger="worker.server_api"):
+        assert api.claim("w1") is None
+        with pytest.raises(ServerUnavailable):
+            once.progress(4, 1, {"done": 3})  # tried once: not retried, no line
+    lines = [r.getMessage() for r in caplog.records if r.name == "worker.server_api"]
+    assert len(lines) == 2, lines
+    assert lines[0].startswith("server unavailable for POST /internal/v1/claims: HTTP 503")
+    assert "ConnectError" in lines[1]
+    assert all(re.search(r"; trying again in \d+\.\d s$", line) for line in lines), lines
 
 
 def test_a_claim_gives_up_after_its_patience(tmp_path: Path) -> None:
