@@ -162,7 +162,9 @@ def create_app(
             console_user_pages.router,
         ],
     )
-    install_error_handlers(app, viewer=error_page_viewer)
+    install_error_handlers(
+        app, viewer=error_page_viewer, database_retry_after_s=settings.database_retry_after_s
+    )
     mount_api_docs(app)
     install_monitoring(app, sessions, settings)
     return app

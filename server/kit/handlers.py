@@ -21,7 +21,6 @@ from server.kit.errors import AppError, ErrorBody, ErrorDetail
 from server.kit.limits import RequestGuard
 
 log = logging.getLogger(__name__)
-DATABASE_RETRY_AFTER_S = 5
 
 TITLES = {
     401: "Please log in",
@@ -54,10 +53,13 @@ PageViewer = Callable[[Request], pages.Viewer | None]
 """Who is looking at an error page, read with a database session of its own (None: unknown)."""
 
 
-def install_error_handlers(app: FastAPI, *, viewer: PageViewer | None = None) -> None:
+def install_error_handlers(
+    app: FastAPI, *, viewer: PageViewer | None, database_retry_after_s: int
+) -> None:
     """Render every error, ours, FastAPI's and Starlette's, as the one error body; and put the
     request guard (server/kit/limits.py) in front of everything that reads a request. Error
-    pages below 500 show the navigation of `viewer`, as every other page does."""
+    pages below 500 show the navigation of `viewer`, as every other page does; a request that
+    meets the database unreachable is told to try again in `database_retry_after_s`."""
     app.add_middleware(RequestGuard)
 
     async def who(request: Request, status: int) -> pages.Viewer | None:
@@ -116,7 +118,7 @@ def install_error_handlers(app: FastAPI, *, viewer: PageViewer | None = None) ->
         detail = ErrorDetail(
             code="unavailable", message="the database is unavailable; try again shortly"
         )
-        return await respond(request, 503, detail, {"Retry-After": str(DATABASE_RETRY_AFTER_S)})
+        return await respond(request, 503, detail, {"Retry-After": str(database_retry_after_s)})
 
     @app.exception_handler(Exception)
     async def crash(request: Request, exc: Exception) -> Response:

@@ -144,6 +144,10 @@ class Settings(BaseSettings):
     leaderboard_max_age: float = Field(default=1.0, ge=0, le=3600)
     """Seconds a rendered leaderboard page is served before checking for a newer version."""
 
+    database_retry_after_s: int = Field(default=5, ge=1, le=3600)
+    """The ``Retry-After`` of the 503 a request gets while the database is unreachable: how
+    long clients (the CLI, workers) wait before they try again."""
+
     log_format: Literal["text", "json"] = "text"
     """``json``: one JSON object per line (for a log pipeline); ``text`` for people."""
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"

@@ -96,6 +96,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
             broker_url=redis.url,
             queue=f"outages-{redis.port}",
             token_rate="1000/minute",
+            database_retry_after_s=1,  # each round waits for it once the database is back
         )
         sessions = embedded_database(settings, quota_concurrent=50, quota_per_day=1000)
         add_challenge(settings, "server-mid", **MID)
