@@ -93,8 +93,8 @@ def _freeze_long_lived_objects() -> None:
 
     Each rebuild of the scene runs a full `gc.collect()` (ManiSkill's `_clear`), which otherwise
     walks every object torch and ManiSkill created at import: most of a rebuild's cost. Done
-    again if the process has since unfrozen everything (`gc.unfreeze`, which the test suite
-    runs after each test): every later rebuild would walk the whole heap once more.
+    again if the process has since unfrozen everything (`gc.unfreeze`, which a test may run):
+    every later rebuild would walk the whole heap once more.
     """
     global _frozen
     if not _frozen or gc.get_freeze_count() == 0:

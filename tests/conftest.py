@@ -66,13 +66,33 @@ def foreground_signals() -> None:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """What the suite imported (torch, ManiSkill, SAPIEN, the app: about a million objects)
+    lives as long as the test process: exempt it from the cyclic garbage collector once, as the
+    server and the evaluator do in production (`gc.freeze`). Otherwise every full collection
+    in a test, ManiSkill's at each scene rebuild among them, walks all of it."""
+    gc.collect()
+    gc.freeze()
+
+
 @pytest.fixture(autouse=True)
 def _collectable_again() -> Iterator[None]:
-    """The server exempts what lives long from the cyclic garbage collector (`gc.freeze`, at
-    start-up and after a whole leaderboard read). In one test process apps and boards come and
-    go by the hundred: after each test, what was exempted is collectable again."""
+    """The server and the evaluator freeze what exists once per process (at the first app,
+    after the first environment, after a large leaderboard read), and a test may unfreeze. In
+    one test process apps and boards come and go by the hundred: after a test that froze or
+    unfroze, what it left is collected and the rest frozen again, so nothing a test made stays
+    exempt for good.
+
+    Objects join the frozen set only by `gc.freeze`, and leave it when freed or by
+    `gc.unfreeze`: a count above the one before the test means a freeze, one below half of it
+    an unfreeze (no test frees half of what the suite imported)."""
+    frozen = gc.get_freeze_count()
     yield
-    gc.unfreeze()
+    now = gc.get_freeze_count()
+    if now > frozen or now < frozen // 2:
+        gc.unfreeze()
+        gc.collect()
+        gc.freeze()
 
 
 def _require(what: str, exc: Exception) -> None:
