@@ -375,7 +375,7 @@ def _send_to_each(
 
 
 # Each operation in turn, driven by Hypothesis here rather than by `schema.parametrize()`: the
-# schema comes from a fixture (the app on each database), and schemathesis's lazy fixture
+# schema comes from a fixture (the servers built for the module), and schemathesis's lazy fixture
 # loader does not run on this pytest.
 @pytest.mark.parametrize("mode", [GenerationMode.POSITIVE, GenerationMode.NEGATIVE])
 @pytest.mark.parametrize(("caller", "examples"), [("alice", 10), ("bob", 15), ("anonymous", 8)])
