@@ -92,12 +92,10 @@ def _freeze_long_lived_objects() -> None:
     """Once per process, after the first environment: exempt what exists from garbage collection.
 
     Each rebuild of the scene runs a full `gc.collect()` (ManiSkill's `_clear`), which otherwise
-    walks every object torch and ManiSkill created at import: most of a rebuild's cost. Done
-    again if the process has since unfrozen everything (`gc.unfreeze`, which a test may run):
-    every later rebuild would walk the whole heap once more.
+    walks every object torch and ManiSkill created at import: most of a rebuild's cost.
     """
     global _frozen
-    if not _frozen or gc.get_freeze_count() == 0:
+    if not _frozen:
         gc.collect()
         gc.freeze()
         _frozen = True

@@ -13,7 +13,7 @@ import gc
 import os
 import signal
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import hypothesis
@@ -66,13 +66,43 @@ def foreground_signals() -> None:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
+class _FreezeWatch:
+    """Whether anything ran `gc.freeze` or `gc.unfreeze` since the last look: both are wrapped
+    for the test process. (`gc.get_freeze_count()` cannot tell: it walks the whole frozen set,
+    a million objects, about 0.1 s a call, and it also falls whenever a frozen object is freed.)"""
+
+    def __init__(self) -> None:
+        self.changed = False
+        self.freeze, self.unfreeze = gc.freeze, gc.unfreeze
+
+    def install(self) -> None:
+        gc.freeze, gc.unfreeze = self._watched(self.freeze), self._watched(self.unfreeze)
+
+    def _watched(self, call: Callable[[], None]) -> Callable[[], None]:
+        def watched() -> None:
+            self.changed = True
+            call()
+
+        return watched
+
+    def refreeze(self) -> None:
+        """Collect what is garbage, frozen or not, and freeze the rest."""
+        self.unfreeze()
+        gc.collect()
+        self.freeze()
+        self.changed = False
+
+
+_freezes = _FreezeWatch()
+
+
 def pytest_collection_finish(session: pytest.Session) -> None:
     """What the suite imported (torch, ManiSkill, SAPIEN, the app: about a million objects)
     lives as long as the test process: exempt it from the cyclic garbage collector once, as the
     server and the evaluator do in production (`gc.freeze`). Otherwise every full collection
     in a test, ManiSkill's at each scene rebuild among them, walks all of it."""
-    gc.collect()
-    gc.freeze()
+    _freezes.refreeze()
+    _freezes.install()
 
 
 @pytest.fixture(autouse=True)
@@ -81,18 +111,10 @@ def _collectable_again() -> Iterator[None]:
     after the first environment, after a large leaderboard read), and a test may unfreeze. In
     one test process apps and boards come and go by the hundred: after a test that froze or
     unfroze, what it left is collected and the rest frozen again, so nothing a test made stays
-    exempt for good.
-
-    Objects join the frozen set only by `gc.freeze`, and leave it when freed or by
-    `gc.unfreeze`: a count above the one before the test means a freeze, one below half of it
-    an unfreeze (no test frees half of what the suite imported)."""
-    frozen = gc.get_freeze_count()
+    exempt for good and what the suite imported stays exempt."""
     yield
-    now = gc.get_freeze_count()
-    if now > frozen or now < frozen // 2:
-        gc.unfreeze()
-        gc.collect()
-        gc.freeze()
+    if _freezes.changed:
+        _freezes.refreeze()
 
 
 def _require(what: str, exc: Exception) -> None:

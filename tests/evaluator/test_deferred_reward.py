@@ -3,7 +3,6 @@ exactly those of computing it at each step, whichever way the policy is called."
 
 from __future__ import annotations
 
-import gc
 from collections.abc import Callable
 from typing import Any
 
@@ -107,15 +106,3 @@ def test_deferred_rewards_sum_to_the_rewards_computed_at_each_step(env: Any) -> 
         assert result.episode_return == eager.episode_return  # exactly: same values, same order
         assert result.success_once == eager.success_once
         assert result.success_at_end == eager.success_at_end
-
-
-def test_an_environment_made_after_everything_was_unfrozen_freezes_the_heap_again(env: Any):
-    """Every rebuild of the scene runs a full `gc.collect()`: what is not frozen is walked at
-    each reset. A process that unfroze everything (the suite does after each test) is frozen
-    again by its next environment, or each of its resets would walk the whole heap."""
-    gc.unfreeze()
-    again = pick_cube()
-    try:
-        assert gc.get_freeze_count() > 0
-    finally:
-        again.close()
