@@ -27,21 +27,24 @@ DOCS_HEADERS = SECURITY_HEADERS | {
 }
 
 
+async def api_docs(request: Request) -> HTMLResponse:
+    """Swagger UI for this app's OpenAPI document. (A module function, not a closure over the
+    app: FastAPI caches facts about each endpoint callable process-wide, and a closure per app
+    kept every app ever made alive.)"""
+    app = request.app
+    root = request.scope.get("root_path", "")
+    html = templates.get_template("apidocs.html").render(
+        title=f"{app.title} API",
+        openapi_url=f"{root}{app.openapi_url}",
+        assets=f"{root}{ASSETS_PATH}",
+    )
+    return HTMLResponse(html, headers=DOCS_HEADERS)
+
+
 def mount_api_docs(app: FastAPI) -> None:
     """Serve the Swagger UI page at /docs and its files under /docs/assets (create the app
     with `docs_url=None` so that FastAPI's CDN page does not take /docs first)."""
     if app.docs_url is not None:
         raise ValueError("create the app with docs_url=None: FastAPI's own /docs uses a CDN")
     app.mount(ASSETS_PATH, StaticFiles(directory=SWAGGER_DIR), name="apidocs-assets")
-
-    async def api_docs(request: Request) -> HTMLResponse:
-        """Swagger UI for this app's OpenAPI document."""
-        root = request.scope.get("root_path", "")
-        html = templates.get_template("apidocs.html").render(
-            title=f"{app.title} API",
-            openapi_url=f"{root}{app.openapi_url}",
-            assets=f"{root}{ASSETS_PATH}",
-        )
-        return HTMLResponse(html, headers=DOCS_HEADERS)
-
     app.add_api_route(DOCS_PATH, api_docs, methods=["GET"], include_in_schema=False)

@@ -14,6 +14,7 @@ import logging
 import threading
 import time
 from collections.abc import Awaitable, Callable, Iterable, Iterator
+from dataclasses import dataclass
 from datetime import timedelta
 
 from fastapi import FastAPI
@@ -186,38 +187,60 @@ class HttpMetrics:
             self.latency.labels(template).observe(time.perf_counter() - started)
 
 
+@dataclass(frozen=True)
+class Monitoring:
+    """What the monitoring routes of one app read (`app.state.monitoring`)."""
+
+    sessions: sessionmaker[Session]
+    settings: Settings
+    registry: CollectorRegistry
+
+
 def install_monitoring(app: FastAPI, sessions: sessionmaker[Session], settings: Settings) -> None:
     """Liveness, readiness and Prometheus metrics (docs/server.md, Monitoring)."""
     registry = CollectorRegistry()
     registry.register(ServiceCollector(sessions))
     app.middleware("http")(HttpMetrics(registry))
+    app.state.monitoring = Monitoring(sessions, settings, registry)
+    # Module functions reading their app's `Monitoring`, not closures over it: FastAPI caches
+    # facts about each endpoint callable process-wide (strong references), and a closure per
+    # app kept every app ever made alive (the test suite makes hundreds in one process).
+    for path, endpoint in (("/healthz", healthz), ("/readyz", readyz), ("/metrics", metrics)):
+        app.add_api_route(path, endpoint, methods=["GET"], include_in_schema=False)
 
-    @app.get("/healthz", include_in_schema=False)
-    def healthz() -> dict[str, str]:
-        return {"status": "ok"}
 
-    @app.get("/readyz", include_in_schema=False)
-    def readyz() -> JSONResponse:
-        try:
-            with sessions() as db:
-                db.execute(text("SELECT 1"))
-        except Exception:  # the detail may name hosts and users: the log has it, not the answer
-            log.exception("readiness: the database does not answer")
-            return JSONResponse({"status": "unavailable", "database": "unreachable"}, 503)
-        if (problem := broker_problem(settings)) is not None:
-            log.warning("readiness: the broker does not answer: %s", problem)
-            return JSONResponse({"status": "unavailable", "broker": "unreachable"}, 503)
-        return JSONResponse({"status": "ok"})
+def _monitoring(request: Request) -> Monitoring:
+    monitoring: Monitoring = request.app.state.monitoring
+    return monitoring
 
-    @app.get("/metrics", include_in_schema=False)
-    def metrics(request: Request) -> Response:
-        token = settings.metrics_token
-        if token is not None:
-            sent = request.headers.get("authorization", "").encode("utf-8", "surrogateescape")
-            expected = f"Bearer {token.get_secret_value()}".encode()
-            if not hmac.compare_digest(sent, expected):
-                raise Unauthorized("send the metrics token: Authorization: Bearer <token>")
-        return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+def healthz() -> dict[str, str]:
+    return {"status": "ok"}
+
+
+def readyz(request: Request) -> JSONResponse:
+    monitoring = _monitoring(request)
+    try:
+        with monitoring.sessions() as db:
+            db.execute(text("SELECT 1"))
+    except Exception:  # the detail may name hosts and users: the log has it, not the answer
+        log.exception("readiness: the database does not answer")
+        return JSONResponse({"status": "unavailable", "database": "unreachable"}, 503)
+    if (problem := broker_problem(monitoring.settings)) is not None:
+        log.warning("readiness: the broker does not answer: %s", problem)
+        return JSONResponse({"status": "unavailable", "broker": "unreachable"}, 503)
+    return JSONResponse({"status": "ok"})
+
+
+def metrics(request: Request) -> Response:
+    monitoring = _monitoring(request)
+    token = monitoring.settings.metrics_token
+    if token is not None:
+        sent = request.headers.get("authorization", "").encode("utf-8", "surrogateescape")
+        expected = f"Bearer {token.get_secret_value()}".encode()
+        if not hmac.compare_digest(sent, expected):
+            raise Unauthorized("send the metrics token: Authorization: Bearer <token>")
+    return Response(generate_latest(monitoring.registry), media_type=CONTENT_TYPE_LATEST)
 
 
 def broker_problem(settings: Settings) -> str | None:
