@@ -97,10 +97,12 @@ _freezes = _FreezeWatch()
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """What the suite imported (torch, ManiSkill, SAPIEN, the app: about a million objects)
-    lives as long as the test process: exempt it from the cyclic garbage collector once, as the
-    server and the evaluator do in production (`gc.freeze`). Otherwise every full collection
-    in a test, ManiSkill's at each scene rebuild among them, walks all of it."""
+    """What the suite imported to collect its tests (the app and the libraries it uses) lives
+    as long as the test process: exempt it from the cyclic garbage collector once, as the server
+    and the evaluator do in production (`gc.freeze`). Otherwise every full collection in a test,
+    ManiSkill's at each scene rebuild among them, walks all of it. (torch and ManiSkill come
+    later, with a test's first environment; the evaluator freezes them then, and so does
+    `_collectable_again` after that test.)"""
     _freezes.refreeze()
     _freezes.install()
 
