@@ -63,6 +63,7 @@ from server.challenges.service import ChallengeOptions, load_challenge  # noqa: 
 from server.kit.db import make_engine, session_factory, upgrade  # noqa: E402
 from server.kit.settings import Settings  # noqa: E402
 from server.models import Challenge, Submission, User  # noqa: E402
+from server.registry.published import LOCAL_POLICY_BASE  # noqa: E402
 from server.submissions.service import Resolved, cancel, submit  # noqa: E402
 from testkit.factories import PASSWORD, make_user  # noqa: E402
 from testkit.k8s_double import (  # noqa: E402
@@ -79,7 +80,7 @@ from worker.server_api import ServerAPI  # noqa: E402
 
 API = "/api/v1"
 SCRIPTED = REPO / "examples" / "policies" / "scripted"
-BASE_IMAGE = "localhost/manieval-base:bookworm"
+BASE_IMAGE = LOCAL_POLICY_BASE
 TEMPLATE_IMAGE = "localhost/manieval-bench/cancel-template:latest"
 POLICY_TAG = "localhost/manieval-bench/cancel-scripted:latest"
 CHALLENGE = "bench-cancel"

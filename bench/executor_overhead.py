@@ -34,10 +34,11 @@ from evaluator.evaluation import evaluate  # noqa: E402
 from evaluator.plan import EvaluationPlan, build_plan  # noqa: E402
 from evaluator.sources import LocalDirectory, PolicySource  # noqa: E402
 from evaluator.suite import load_suite  # noqa: E402
+from server.registry.published import LOCAL_POLICY_BASE  # noqa: E402
 from worker.containers import ContainerImage  # noqa: E402
 
 SCRIPTED = REPO / "examples" / "policies" / "scripted"
-BASE_IMAGE = "localhost/manieval-base:bookworm"
+BASE_IMAGE = LOCAL_POLICY_BASE
 IMAGE = "localhost/manieval-bench/scripted:latest"
 TASKS = ["PickCube-v1", "PushCube-v1"]
 

@@ -25,6 +25,8 @@ command -v redis-server >/dev/null || missing+=(redis-server)
 command -v podman >/dev/null || missing+=(podman)
 [ -x /usr/sbin/runc ] || missing+=(runc)
 command -v debootstrap >/dev/null || missing+=(debootstrap)
+# `manieval serve` and the demo publish that base in their registry with skopeo.
+command -v skopeo >/dev/null || missing+=(skopeo)
 command -v openssl >/dev/null || missing+=(openssl)  # signs the test registry's tokens
 # Local policies (`manieval evaluate --policy`, the demo's local: policies) run under bubblewrap;
 # as root the sandbox is entered through util-linux's unshare and setpriv, and mount.

@@ -1,7 +1,7 @@
 """The organizer's commands, run on the server's host against its database: `manieval admin
-hide|unhide|disqualify|reinstate|rerun|rerun-stuck|export|audit` (besides `admin create`, in
-`server.cli`). Each action is recorded in the audit log with the login running the command
-(`cli:LOGIN`); docs/server.md, Organizer tools."""
+hide|unhide|disqualify|reinstate|rerun|rerun-stuck|export|audit|publish-token` (besides `admin
+create`, in `server.cli`). Each action is recorded in the audit log with the login running the
+command (`cli:LOGIN`); docs/server.md, Organizer tools."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from server.cli import _transaction, admin_app, console
+from server.cli import _transaction, admin_app, console, settings
 
 if TYPE_CHECKING:
     from server.submissions.moderation import Moderation
@@ -155,3 +155,50 @@ def admin_audit(
             typer.echo(f"{r.id}\t{when}\t{r.actor}\t{r.action} {target}{where}{why}")
     if listing.next_before_id is not None:
         console.print(f"older: --before-id {listing.next_before_id}")
+
+
+@admin_app.command("publish-token")
+def admin_publish_token(
+    repository: Annotated[
+        str | None,
+        typer.Argument(
+            help="A repository under manieval/ [default: the policy base's].", show_default=False
+        ),
+    ] = None,
+    reason: OptionalReason = "",
+) -> None:
+    """Print a push token for one repository of the service's own namespace, for publishing
+    the policy base to a registry the service does not start (docs/registry.md)."""
+    from server.audit import reason_of, record
+    from server.registry.published import LOCAL_POLICY_BASE, POLICY_BASE_REPOSITORY, POLICY_BASE_TAG
+    from server.registry.service import publish_token
+
+    repository = repository or POLICY_BASE_REPOSITORY
+    s = settings()
+    if s.registry_domain is None:
+        console.print("[red]error:[/] this service has no registry (MANIEVAL_REGISTRY_DOMAIN)")
+        raise typer.Exit(2)
+    try:
+        token = publish_token(s, repository=repository)
+    except ValueError as exc:
+        console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(2) from None
+    with _transaction(s) as db:
+        why = reason_of(reason, required=False)
+        record(
+            db,
+            by=None,
+            action="registry.publish_token",
+            target_kind="repository",
+            target_id=None,
+            reason=why,
+            detail={"repository": repository},
+        )
+    typer.echo(token)
+    target = f"docker://{s.registry_domain}/{repository}:{POLICY_BASE_TAG}"
+    console.print(
+        f"valid for {s.registry_token_ttl_s} s, e.g.: skopeo copy --dest-registry-token TOKEN "
+        f"containers-storage:{LOCAL_POLICY_BASE} {target}",
+        markup=False,
+        highlight=False,
+    )

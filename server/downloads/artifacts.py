@@ -20,6 +20,7 @@ REPO = Path(__file__).resolve().parents[2]
 SDK_PROJECT = REPO / "evaluator" / "sdk"
 CLI_PACKAGE = REPO / "manieval"
 TEMPLATE = REPO / "examples" / "policy-template"
+BASE_DOCKERFILE = REPO / "docker" / "policy-base" / "Dockerfile"  # the template's base/
 TEMPLATE_FILE = "policy-template.tar.gz"
 TEMPLATE_DIR = "my-policy"  # what the archive unpacks to
 WHEEL_TYPE = "application/zip"
@@ -110,7 +111,8 @@ def cli_spec() -> WheelSpec:
 
 
 def template_archive() -> bytes:
-    """The policy template with the SDK beside its Dockerfile, as `my-policy/`."""
+    """The policy template with the SDK beside its Dockerfile and the base's Dockerfile in
+    `base/`, as `my-policy/`."""
     if not TEMPLATE.is_dir():
         raise NotServed("the policy template is not installed beside this service")
     files = {
@@ -119,6 +121,7 @@ def template_archive() -> bytes:
         if p.is_file() and "__pycache__" not in p.parts
     }
     files |= _package_files(SDK_PROJECT / "manieval_sdk", prefix=f"{TEMPLATE_DIR}/manieval_sdk")
+    files[f"{TEMPLATE_DIR}/base/Dockerfile"] = BASE_DOCKERFILE.read_bytes()
     out = io.BytesIO()
     # Times fixed (the gzip header's too): the same bytes on every build, as the wheels.
     with (

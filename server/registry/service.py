@@ -26,6 +26,7 @@ from server.registry.keys import (
     load_signing_key,
 )
 from server.registry.tokens import (
+    SERVICE_NAMESPACE,
     Access,
     Grantee,
     IssuedToken,
@@ -33,6 +34,7 @@ from server.registry.tokens import (
     grant,
     namespace_for,
     parse_scopes,
+    valid_repository,
 )
 
 BASIC_REALM = "manieval-registry"
@@ -150,4 +152,14 @@ def issue_token(
 def server_pull_token(settings: Settings, *, repository: str) -> str:
     """A pull token for one repository, minted by the server for itself (pinning a submission)."""
     access = [Access(type="repository", name=repository, actions=("pull",))]
+    return signer(settings).issue(subject=SERVER_SUBJECT, access=access).token
+
+
+def publish_token(settings: Settings, *, repository: str) -> str:
+    """A push token for one repository of the service's own namespace (``manieval/...``), the
+    only way anything is pushed there: `manieval serve` publishing the policy base, or an
+    operator's ``manieval admin publish-token`` (docs/registry.md)."""
+    if not (valid_repository(repository) and repository.startswith(f"{SERVICE_NAMESPACE}/")):
+        raise ValueError(f"the server publishes only under {SERVICE_NAMESPACE}/, not {repository}")
+    access = [Access(type="repository", name=repository, actions=("pull", "push"))]
     return signer(settings).issue(subject=SERVER_SUBJECT, access=access).token

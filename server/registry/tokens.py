@@ -26,6 +26,10 @@ _COMPONENT_RE = re.compile(_COMPONENT, re.ASCII)
 _REPOSITORY_RE = re.compile(rf"{_COMPONENT}(?:/{_COMPONENT})*", re.ASCII)
 MAX_REPOSITORY_LENGTH = 255
 MAX_SCOPES = 16  # a push names two or three (the target, mount sources); more is not a client
+# What the service itself publishes for everyone to build on (the policy base image): every
+# grantee may pull it, nobody pushes but the server (its own tokens, service.server_token). No
+# account can own this namespace: the name is reserved (kit/security.RESERVED_USERNAMES).
+SERVICE_NAMESPACE = "manieval"
 
 
 @dataclass(frozen=True)
@@ -85,7 +89,8 @@ def parse_scopes(scopes: Iterable[str]) -> list[Access]:
 
 def grant(requested: Sequence[Access], grantee: Grantee) -> list[Access]:
     """What ``grantee`` gets of ``requested``: push and pull on its own repositories, pull
-    anywhere for the pull credential, nothing else (no catalog, no delete)."""
+    anywhere for the pull credential, pull on the service's own (:data:`SERVICE_NAMESPACE`) for
+    everyone, nothing else (no catalog, no delete)."""
     granted: dict[str, set[str]] = {}
     for access in requested:
         if access.type != "repository" or not valid_repository(access.name):
@@ -93,7 +98,7 @@ def grant(requested: Sequence[Access], grantee: Grantee) -> list[Access]:
         allowed: set[str] = set()
         if grantee.namespace is not None and access.name.split("/")[0] == grantee.namespace:
             allowed = {"pull", "push"}
-        elif grantee.pull_anywhere:
+        elif grantee.pull_anywhere or access.name.split("/")[0] == SERVICE_NAMESPACE:
             allowed = {"pull"}
         actions = allowed & set(access.actions)
         if actions:

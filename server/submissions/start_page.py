@@ -17,8 +17,9 @@ from server.downloads.artifacts import TEMPLATE_DIR, wheel_files
 from server.kit.deps import DBDep
 from server.kit.pages import render
 from server.models import Challenge
+from server.registry.published import LOCAL_POLICY_BASE
 from server.submissions.deps import services
-from server.submissions.submit_pages import server_flag, template_commands
+from server.submissions.submit_pages import published_base, server_flag, template_commands
 
 router = APIRouter(include_in_schema=False)
 
@@ -41,7 +42,12 @@ class StartCommands:
 
 
 def start_commands(
-    request: Request, *, challenge: Challenge, username: str | None, phase: str
+    request: Request,
+    *,
+    challenge: Challenge,
+    username: str | None,
+    phase: str,
+    published: str | None,
 ) -> StartCommands:
     """Every command of the page, for this service and reader."""
     base = str(request.base_url).rstrip("/")
@@ -52,17 +58,17 @@ def start_commands(
         [] if username else [f"manieval register -u {name} --email {PLACEHOLDER_EMAIL}{server}"]
     )
     slug = challenge.slug
-    download, unpack, build = template_commands(request)
+    fetch, build = template_commands(request, published=published)
     return StartCommands(
         install=[f"python3 -m venv {VENV}", f". {VENV}/bin/activate", f"pip install {wheels}"],
         account=[*account, f"manieval login -u {name}{server}"],
-        template=[download, unpack],
+        template=fetch,
         evaluate=[
             f"curl -fsSL {base}/challenges/{slug}/suite.yaml -o {slug}.yaml",
             f"manieval evaluate --policy {TEMPLATE_DIR} --suite {slug}.yaml --phase {phase}"
             " --episodes 1",
         ],
-        build=[build],
+        build=build,
         push=[f"manieval push my-policy:v1 --challenge {slug} --wait"],
         board=[f"manieval leaderboard {slug}"],
     )
@@ -76,14 +82,19 @@ def getting_started(slug: str, request: Request, who: ViewerDep, db: DBDep) -> R
     contract = contract_of(suite)
     phase = contract.public_phases[0] if contract.public_phases else next(iter(suite.phases))
     username = who.user.username if who.user is not None else None
+    published = published_base(request)
     return render(
         request,
         who,
         "start.html",
         challenge=challenge,
         contract=contract,
-        commands=start_commands(request, challenge=challenge, username=username, phase=phase),
+        commands=start_commands(
+            request, challenge=challenge, username=username, phase=phase, published=published
+        ),
         registry=services(request).settings.registry_domain,
+        published_base=published,
+        local_base=LOCAL_POLICY_BASE,
     )
 
 

@@ -20,7 +20,9 @@ from server.downloads.artifacts import TEMPLATE_DIR, TEMPLATE_FILE
 from server.kit.deps import DBDep, limit
 from server.kit.errors import AppError, Invalid
 from server.kit.pages import Viewer, admin_signed_in, redirect, render, signed_in
+from server.kit.settings import Settings
 from server.models import Challenge, State, Submission, User, utcnow
+from server.registry.published import LOCAL_POLICY_BASE, policy_base
 from server.registry.tokens import namespace_for
 from server.submissions.deps import services
 from server.submissions.method import Method
@@ -93,15 +95,14 @@ def push_commands(request: Request, *, user: User, challenge: Challenge) -> Push
         return None
     namespace = namespace_for(user.username) or user.username
     server = server_flag(request)
-    tls = (
-        " --tls-verify=false" if domain in settings.insecure_registries or _loopback(domain) else ""
-    )
+    tls = _tls_flag(settings, domain)
     tagged = f"{domain}/{namespace}/my-policy:v1"
+    fetch, build = template_commands(request, published=published_base(request))
     return PushCommands(
         registry=domain,
         namespace=namespace,
         login=f"manieval login -u {user.username}{server}",
-        build=template_commands(request),
+        build=[*fetch, *build],
         push=f"manieval push my-policy:v1 --challenge {challenge.slug} --wait{server}",
         engine_login=f"podman login{tls} -u {user.username} {domain}",
         engine_push=f"podman push{tls} my-policy:v1 {tagged}",
@@ -115,14 +116,43 @@ def server_flag(request: Request) -> str:
     return "" if base == DEFAULT_CLI_SERVER else f" --server {base}"
 
 
-def template_commands(request: Request) -> list[str]:
-    """Download the policy template (the SDK inside) from this service and build its image."""
+def template_commands(request: Request, *, published: str | None) -> tuple[list[str], list[str]]:
+    """Download the policy template (the SDK inside) from this service, and build its image:
+    on the `published` base (:func:`published_base`), pulled with the `manieval login` of the
+    steps before, else on a base built from the template's own base/Dockerfile."""
     base = str(request.base_url).rstrip("/")
-    return [
+    fetch = [
         f"curl -fsSLO {base}/downloads/{TEMPLATE_FILE}",
         f"tar xzf {TEMPLATE_FILE}  # unpacks {TEMPLATE_DIR}/, with the SDK beside its Dockerfile",
-        f"podman build -t my-policy:v1 {TEMPLATE_DIR}",
     ]
+    settings = services(request).settings
+    if published is not None and settings.registry_domain is not None:
+        tls = _tls_flag(settings, settings.registry_domain)
+        build = [f"podman build{tls} --build-arg BASE={published} -t my-policy:v1 {TEMPLATE_DIR}"]
+    else:
+        build = [
+            f"podman build -t {LOCAL_POLICY_BASE} {TEMPLATE_DIR}/base  # the base, once",
+            f"podman build -t my-policy:v1 {TEMPLATE_DIR}",
+        ]
+    return fetch, build
+
+
+def published_base(request: Request) -> str | None:
+    """The policy base on this service's registry, pinned by digest, or None when the service
+    runs no registry or its registry does not have it (server/registry/published.py)."""
+    domain = services(request).settings.registry_domain
+    if domain is None:
+        return None
+    try:
+        return services(request).resolve(policy_base(domain)).pinned
+    except AppError:  # not published, or the registry is down: the page says how to build it
+        return None
+
+
+def _tls_flag(settings: Settings, domain: str) -> str:
+    """Podman speaks plain HTTP to a registry only when told."""
+    insecure = domain in settings.insecure_registries or _loopback(domain)
+    return " --tls-verify=false" if insecure else ""
 
 
 def _loopback(domain: str) -> bool:

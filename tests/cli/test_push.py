@@ -272,6 +272,9 @@ def test_the_getting_started_page_takes_a_fresh_virtualenv_to_a_ranked_submissio
         "push",
         "board",
     ]
+    # The base comes from the service's registry, published there at its start, pinned.
+    build = next(b for b in blocks if b.step == "build")
+    assert f"--build-arg BASE={embedded.registry}/manieval/policy-base@sha256:" in build.lines[0]
     BUILT.append("localhost/my-policy:v1")  # the page's tag, removed with the module's images
     sourced: list[str] = []  # `. manieval-env/bin/activate`: it holds for the lines after it
     said: dict[str, str] = {}

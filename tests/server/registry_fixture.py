@@ -36,7 +36,6 @@ import httpx
 import pytest
 
 REGISTRY_BINARY = "docker-registry"
-INSTALL_HINT = "apt-get install -y docker-registry openssl"
 OCI_INDEX = "application/vnd.oci.image.index.v1+json"
 OCI_MANIFEST = "application/vnd.oci.image.manifest.v1+json"
 OCI_CONFIG = "application/vnd.oci.image.config.v1+json"
@@ -77,7 +76,7 @@ def require_tool(name: str) -> str:
     """The tool's path; a failure in CI, a skip elsewhere, when it is not installed."""
     path = shutil.which(name)
     if path is None:
-        message = f"{name} is not installed; run as root: {INSTALL_HINT}"
+        message = f"{name} is not installed; run as root: apt-get install -y {name}"
         if os.environ.get("CI") == "true":
             pytest.fail(message)
         pytest.skip(message)

@@ -9,6 +9,7 @@ import io
 import json
 from pathlib import Path
 
+import jwt
 import pytest
 from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
@@ -139,3 +140,28 @@ def test_rerun_stuck_says_when_nothing_is_stuck(env: Path, done: int) -> None:
     assert code == 0
     assert "nothing is stuck" in said
     assert admin("rerun-stuck", "--challenge", "nope")[0] == 1
+
+
+def test_publish_token_is_for_the_services_namespace_only_and_recorded(
+    env: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    assert admin("publish-token")[0] == 2  # no registry: nothing to publish to
+    monkeypatch.setenv("MANIEVAL_REGISTRY_DOMAIN", "127.0.0.1:5000")
+    r = runner.invoke(app, ["admin", "publish-token", "--reason", "the base for the challenge"])
+    assert r.exit_code == 0, r.output
+    claims = jwt.decode(r.stdout.strip(), options={"verify_signature": False})
+    assert claims["access"] == [
+        {"type": "repository", "name": "manieval/policy-base", "actions": ["pull", "push"]}
+    ]
+    assert "skopeo copy --dest-registry-token TOKEN" in r.stderr
+    code, said = admin("publish-token", "alice/policy")
+    assert code == 2
+    assert "publishes only under manieval/" in said
+    with session(env) as db:
+        (record,) = audit.records(db)
+        assert (record.action, record.actor, record.reason) == (
+            "registry.publish_token",
+            ACTOR,
+            "the base for the challenge",
+        )
+        assert record.detail == {"repository": "manieval/policy-base"}

@@ -12,14 +12,20 @@ import time
 import urllib.request
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import httpx
+import pytest
 
+from manieval import engines as engines_module
 from manieval.engines import Engines, EngineSettings
 from manieval.supervise import Supervised
 from server.kit.settings import Settings
+from server.registry.published import LOCAL_POLICY_BASE, POLICY_BASE_REPOSITORY, policy_base
+from server.registry.service import server_pull_token
 from testkit.factories import PASSWORD
 from tests.cli.conftest import free_port, running_server
+from tests.cli.push_support import build_base_image
 from tests.server.registry_fixture import require_tool
 
 
@@ -182,3 +188,57 @@ def test_serve_starts_and_stops_the_registry_and_podman(tmp_path: Path) -> None:
         assert (data / "registry" / "storage").is_dir()
     for pid in pids:
         _wait(lambda pid=pid: _gone(pid), timeout=30)
+
+
+def test_the_policy_base_is_published_in_the_registry_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The engine's base goes into the embedded registry at start, for participants to build on
+    without a checkout; while the registry has that very image, nothing is copied again; an
+    engine without one is said in a line."""
+    skopeo = require_tool("skopeo")
+    build_base_image()
+    settings = Settings(dev_mode=True, data_dir=tmp_path)
+    options = EngineSettings(embedded_registry_addr=f"127.0.0.1:{free_port()}")
+    engines = Engines(settings, server_url="http://127.0.0.1:1", options=options)
+    try:
+        assert engines.start() == []
+        domain = engines.registry_domain
+        assert domain is not None
+        token = server_pull_token(settings, repository=POLICY_BASE_REPOSITORY)
+        inspected = subprocess.run(
+            [
+                *(skopeo, "inspect", "--raw", "--tls-verify=false", "--registry-token", token),
+                f"docker://{policy_base(domain)}",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert inspected.returncode == 0, inspected.stderr
+        local = subprocess.run(
+            ["podman", "image", "inspect", "--format", "{{.Id}}", LOCAL_POLICY_BASE],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert json.loads(inspected.stdout)["config"]["digest"] == f"sha256:{local.stdout.strip()}"
+
+        ran: list[str] = []
+        run = subprocess.run
+
+        def recorded(args: list[str], **kwargs: Any) -> subprocess.CompletedProcess[str]:
+            ran.append(args[1])
+            return run(args, **kwargs)
+
+        monkeypatch.setattr(subprocess, "run", recorded)  # the engines module's too
+        assert engines.publish_policy_base() is None
+        assert ran == ["inspect"]  # the registry has it already
+
+        monkeypatch.setattr(engines_module, "LOCAL_POLICY_BASE", "localhost/manieval-none:x")
+        said = engines.publish_policy_base()
+        assert said is not None
+        assert "the engine has no localhost/manieval-none:x" in said
+        assert "the template's base/Dockerfile" in said
+    finally:
+        engines.stop()

@@ -346,3 +346,46 @@ def test_podman_login_and_push_work_in_the_own_namespace_only(stack: Stack, tmp_
         run("rmi", "--force", name)
     resolved = image_resolver(stack.settings)(f"{stack.domain}/alice/tiny:v1")
     assert resolved.pinned.startswith(f"{stack.domain}/alice/tiny@sha256:")
+
+
+def test_what_the_server_publishes_every_login_pulls_and_nobody_pushes(
+    stack: Stack, tmp_path: Path
+) -> None:
+    """The service's namespace (the policy base's): published with a token only the server
+    signs (`manieval admin publish-token`), pulled by any participant, pushed by none."""
+    podman, skopeo = require_tool("podman"), require_tool("skopeo")
+    env = {**os.environ, "REGISTRY_AUTH_FILE": str(tmp_path / "auth.json")}
+    local = f"localhost/manieval-published-test:{os.getpid()}"
+    published = f"{stack.domain}/manieval/published-test:v1"
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [podman, *args], env=env, capture_output=True, text=True, timeout=300, check=False
+        )
+
+    _tiny_image(podman, local)
+    try:
+        token = registry.publish_token(stack.settings, repository="manieval/published-test")
+        copied = subprocess.run(
+            [
+                *(skopeo, "copy", "--quiet", "--dest-tls-verify=false"),
+                *("--dest-registry-token", token, f"containers-storage:{local}"),
+                f"docker://{published}",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert copied.returncode == 0, copied.stderr
+        assert run("pull", "--tls-verify=false", published).returncode != 0  # anonymous: no
+        login = run(
+            "login", "--tls-verify=false", "-u", "bob", "-p", stack.tokens["bob"], stack.domain
+        )
+        assert login.returncode == 0, login.stderr
+        pulled = run("pull", "--tls-verify=false", published)
+        assert pulled.returncode == 0, pulled.stderr
+        refused = run("push", "--tls-verify=false", local, f"docker://{published}")
+        assert refused.returncode != 0
+        assert "denied" in refused.stderr.lower() or "unauthorized" in refused.stderr.lower()
+    finally:
+        run("rmi", "--force", local, published)

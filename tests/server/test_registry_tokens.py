@@ -20,11 +20,20 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.accounts import service as accounts
 from server.app import create_app
 from server.kit.ratelimit import MemoryRateLimiter
+from server.kit.security import RESERVED_USERNAMES
 from server.kit.settings import Settings
 from server.models import User
 from server.registry.config import registry_config
 from server.registry.keys import SigningKeyMissing, ensure_signing_key, load_signing_key
-from server.registry.tokens import Access, Grantee, grant, namespace_for, parse_scopes
+from server.registry.service import publish_token
+from server.registry.tokens import (
+    SERVICE_NAMESPACE,
+    Access,
+    Grantee,
+    grant,
+    namespace_for,
+    parse_scopes,
+)
 from testkit.factories import RecordingQueue, fake_resolve_for, make_user
 
 PULL_PASSWORD = "pull-" + "q" * 40
@@ -100,6 +109,19 @@ PULLER = Grantee(subject="manieval-puller", namespace=None, pull_anywhere=True)
             [("alice/p", ("pull", "push"))],
         ),
         (["nonsense", "repository::pull", ""], ALICE, []),
+        # The service's own images (the policy base): everyone pulls, nobody pushes.
+        (
+            ["repository:manieval/policy-base:pull,push"],
+            ALICE,
+            [("manieval/policy-base", ("pull",))],
+        ),
+        (["repository:manieval/policy-base:push"], ALICE, []),
+        (
+            ["repository:manieval/policy-base:pull,push"],
+            PULLER,
+            [("manieval/policy-base", ("pull",))],
+        ),
+        (["repository:manievalx/policy-base:pull"], ALICE, []),
     ],
 )
 def test_scopes_are_granted_only_within_the_callers_rights(
@@ -121,6 +143,24 @@ def test_namespace_is_the_user_name_when_it_is_a_path_component(
     username: str, namespace: str | None
 ) -> None:
     assert namespace_for(username) == namespace
+
+
+def test_no_account_can_own_the_services_namespace() -> None:
+    assert SERVICE_NAMESPACE in RESERVED_USERNAMES
+
+
+@pytest.mark.parametrize(
+    "repository", ["alice/policy", "manieval", "manieval/Base", "x/manieval/a"]
+)
+def test_the_server_publishes_only_under_its_own_namespace(tmp_path: Path, repository: str) -> None:
+    settings = Settings(dev_mode=True, data_dir=tmp_path, registry_domain="127.0.0.1:5000")
+    with pytest.raises(ValueError, match="publishes only under manieval/"):
+        publish_token(settings, repository=repository)
+    token = publish_token(settings, repository="manieval/policy-base")
+    claims = jwt.decode(token, options={"verify_signature": False})
+    assert claims["access"] == [
+        {"type": "repository", "name": "manieval/policy-base", "actions": ["pull", "push"]}
+    ]
 
 
 # Settings --------------------------------------------------------------------------------------

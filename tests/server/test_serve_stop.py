@@ -168,6 +168,8 @@ def launched(
     env = clean_environment() | {
         "MANIEVAL_DATA_DIR": str(data),
         "MANIEVAL_EMBEDDED_REGISTRY_ADDR": f"127.0.0.1:{free_port()}",
+        # Stopping is what is tested here; publishing the base is, in test_embedded_engines.
+        "MANIEVAL_PUBLISH_POLICY_BASE": "false",
         "PYTHONUNBUFFERED": "1",
         **(extra or {}),
     }

@@ -7,6 +7,7 @@ import io
 import tarfile
 import zipfile
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
@@ -16,10 +17,13 @@ from server.challenges.contract import condition_effect
 from server.challenges.service import suite_of
 from server.kit.settings import Settings
 from server.models import Challenge
+from server.registry.published import LOCAL_POLICY_BASE, POLICY_BASE_REPOSITORY
 from testkit.factories import make_user
 from tests.web.helpers import browser
 from tests.web.start_commands import page_commands
 from tests.web.test_web_push_commands import REGISTRY, app_client
+
+REPO = Path(__file__).resolve().parents[2]
 
 START = "/challenges/server-tiny/start"
 
@@ -123,6 +127,50 @@ def test_the_template_unpacks_with_the_sdk_beside_its_dockerfile(client: TestCli
         "my-policy/policy.py",
         "my-policy/manieval_sdk/__init__.py",
     } <= set(names)
+
+
+def test_the_build_pulls_the_base_the_registry_publishes_pinned(
+    registry_client: TestClient, tiny: Challenge
+) -> None:
+    page = registry_client.get(START).text
+    build = next(b for b in page_commands(page) if b.step == "build")
+    assert len(build.lines) == 1, build.lines
+    published = f"{REGISTRY}/{POLICY_BASE_REPOSITORY}@sha256:"
+    assert build.lines[0].startswith(
+        f"podman build --tls-verify=false --build-arg BASE={published}"
+    )
+    assert build.lines[0].endswith(" -t my-policy:v1 my-policy")
+    assert "builds on the base this service publishes in its registry" in page
+
+
+@pytest.mark.parametrize("registry", [False, True])
+def test_without_a_published_base_the_build_makes_it_from_the_template(
+    settings: Settings, sessions: sessionmaker[Session], tiny: Challenge, registry: bool
+) -> None:
+    """No registry, or one without the base (here: images refused, as the embedded default
+    without its engine): the template's base/Dockerfile, built once, then the policy."""
+    update = {"registry_domain": REGISTRY, "allowed_registries": [REGISTRY]} if registry else {}
+    refusal = "podman is not installed" if registry else None
+    with app_client(settings.model_copy(update=update), sessions, refusal=refusal) as client:
+        page = client.get(START).text
+    build = next(b for b in page_commands(page) if b.step == "build")
+    assert build.lines == [
+        f"podman build -t {LOCAL_POLICY_BASE} my-policy/base  # the base, once",
+        "podman build -t my-policy:v1 my-policy",
+    ]
+    assert "made once from the template's <code>base/Dockerfile</code>" in page
+
+
+def test_the_template_carries_the_base_dockerfile(client: TestClient) -> None:
+    served = tarfile.open(
+        fileobj=io.BytesIO(client.get("/downloads/policy-template.tar.gz").content)
+    )
+    carried = served.extractfile("my-policy/base/Dockerfile")
+    assert carried is not None
+    assert carried.read() == (REPO / "docker" / "policy-base" / "Dockerfile").read_bytes()
+    policy = served.extractfile("my-policy/Dockerfile")
+    assert policy is not None
+    assert f"ARG BASE={LOCAL_POLICY_BASE}\n" in policy.read().decode()
 
 
 def test_an_unknown_download_is_a_404(client: TestClient) -> None:

@@ -32,13 +32,14 @@ from docker.client import DockerClient
 from docker.errors import DockerException
 from docker.models.containers import Container
 
+from server.registry.published import LOCAL_POLICY_BASE
 from tests.server.registry_fixture import LocalRegistry
 from worker.containers import LABEL_ATTEMPT, LABEL_ROLE, LABEL_SUBMISSION, ROLE_POLICY, engine
 
 REPO = Path(__file__).resolve().parents[2]
 CONTAINERS_CONF = REPO / "docker" / "containers.conf"
 BASE_BUILD = REPO / "docker" / "policy-base" / "build.sh"
-BASE_IMAGE = "localhost/manieval-base:bookworm"
+BASE_IMAGE = LOCAL_POLICY_BASE
 TEMPLATE = REPO / "examples" / "policy-template"
 SDK = REPO / "evaluator" / "sdk" / "manieval_sdk"
 TEMPLATE_IMAGE = "localhost/manieval-test/template:latest"
