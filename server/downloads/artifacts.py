@@ -1,11 +1,13 @@
 """The files of /downloads, built from the sources this service runs: the participant SDK and
-the slim `manieval` CLI as wheels (the same versions as the service's), and the policy
-template with the SDK inside, ready for `podman build`."""
+the slim `manieval` CLI as wheels (the same versions as the service's), the policy template
+with the SDK inside, ready for `podman build`, and the service's own source, whose `make
+install` brings the simulator for scoring a policy locally exactly as this service does."""
 
 from __future__ import annotations
 
 import gzip
 import io
+import os
 import re
 import tarfile
 import tomllib
@@ -37,6 +39,15 @@ SERVER_SIDE = frozenset(
 CLI_REQUIRES = ("typer", "rich", "httpx", "platformdirs")
 # The evaluator's pure-Python modules that a participant command uses (`manieval compare`).
 CLI_EVALUATOR_MODULES = ("__init__.py", "paired.py", "stats.py")
+# What the source download holds: what `make install` and `manieval evaluate` need, named one by
+# one so that nothing else in the directory the service runs from (a data directory, a
+# virtualenv, local files) is ever served; the suite, the benchmarks and CI stay out.
+SOURCE_FILES = ("Makefile", "README.md", "pyproject.toml", "constraints.txt", "alembic.ini")
+SOURCE_DIRS = (
+    *("alembic", "docker", "docs", "evaluator", "examples", "internal_api", "k8s", "manieval"),
+    *("scripts", "server", "suites", "web", "worker"),
+)
+_NOT_SOURCE = re.compile(r"(^|/)(__pycache__|[^/]*\.egg-info|\.[^/]*)(/|$)|\.py[co]$")
 
 
 class NotServed(LookupError):
@@ -122,15 +133,46 @@ def template_archive() -> bytes:
     }
     files |= _package_files(SDK_PROJECT / "manieval_sdk", prefix=f"{TEMPLATE_DIR}/manieval_sdk")
     files[f"{TEMPLATE_DIR}/base/Dockerfile"] = BASE_DOCKERFILE.read_bytes()
+    return _tar_gz({path: (data, 0o644) for path, data in files.items()})
+
+
+def source_dir() -> str:
+    """What the source download unpacks to: `manieval-VERSION`."""
+    return f"manieval-{_project(REPO / 'pyproject.toml')['version']}"
+
+
+def source_file() -> str:
+    return f"{source_dir()}.tar.gz"
+
+
+def source_archive() -> bytes:
+    """The service's own source, as `manieval-VERSION/`: :data:`SOURCE_FILES` and the files
+    under :data:`SOURCE_DIRS`, executables kept executable."""
+    if not (REPO / "Makefile").is_file():
+        raise NotServed("the service's source is not installed beside it")
+    paths = [REPO / name for name in SOURCE_FILES]
+    for name in SOURCE_DIRS:
+        paths += sorted(p for p in (REPO / name).rglob("*") if p.is_file() and not p.is_symlink())
+    files = {}
+    for path in paths:
+        relative = path.relative_to(REPO).as_posix()
+        if not _NOT_SOURCE.search(relative):
+            mode = 0o755 if os.access(path, os.X_OK) else 0o644
+            files[f"{source_dir()}/{relative}"] = (path.read_bytes(), mode)
+    return _tar_gz(files)
+
+
+def _tar_gz(files: dict[str, tuple[bytes, int]]) -> bytes:
+    """A gzipped tar of `files` (path: content and mode), sorted, its times fixed (the gzip
+    header's too): the same bytes on every build, as the wheels."""
     out = io.BytesIO()
-    # Times fixed (the gzip header's too): the same bytes on every build, as the wheels.
     with (
         gzip.GzipFile(fileobj=out, mode="wb", mtime=0) as zipped,
         tarfile.open(fileobj=zipped, mode="w", format=tarfile.PAX_FORMAT) as archive,
     ):
-        for path, data in sorted(files.items()):
+        for path, (data, mode) in sorted(files.items()):
             member = tarfile.TarInfo(path)
-            member.size, member.mode, member.mtime = len(data), 0o644, EPOCH_SECONDS
+            member.size, member.mode, member.mtime = len(data), mode, EPOCH_SECONDS
             archive.addfile(member, io.BytesIO(data))
     return out.getvalue()
 
@@ -151,8 +193,9 @@ def downloads() -> dict[str, Download]:
         except NotServed:
             continue
         found[built.filename] = Download(built.filename, build_wheel(built), WHEEL_TYPE)
-    try:
-        found[TEMPLATE_FILE] = Download(TEMPLATE_FILE, template_archive(), "application/gzip")
-    except NotServed:
-        pass
+    for name, archive in ((TEMPLATE_FILE, template_archive), (source_file(), source_archive)):
+        try:
+            found[name] = Download(name, archive(), "application/gzip")
+        except NotServed:
+            pass
     return found

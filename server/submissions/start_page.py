@@ -13,7 +13,7 @@ from fastapi.responses import Response
 from server.accounts.deps import ViewerDep
 from server.challenges.contract import contract_of
 from server.challenges.service import get_challenge, suite_of
-from server.downloads.artifacts import TEMPLATE_DIR, wheel_files
+from server.downloads.artifacts import TEMPLATE_DIR, source_dir, source_file, wheel_files
 from server.kit.deps import DBDep
 from server.kit.pages import render
 from server.models import Challenge
@@ -35,6 +35,7 @@ class StartCommands:
     install: list[str]
     account: list[str]
     template: list[str]
+    simulator: list[str]
     evaluate: list[str]
     build: list[str]
     push: list[str]
@@ -63,6 +64,12 @@ def start_commands(
         install=[f"python3 -m venv {VENV}", f". {VENV}/bin/activate", f"pip install {wheels}"],
         account=[*account, f"manieval login -u {name}{server}"],
         template=fetch,
+        simulator=[
+            f"curl -fsSLO {base}/downloads/{source_file()}",
+            f"tar xzf {source_file()}",
+            f"make -C {source_dir()} install",
+            f". {source_dir()}/.venv/bin/activate",
+        ],
         evaluate=[
             f"curl -fsSL {base}/challenges/{slug}/suite.yaml -o {slug}.yaml",
             f"manieval evaluate --policy {TEMPLATE_DIR} --suite {slug}.yaml --phase {phase}"

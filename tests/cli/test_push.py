@@ -16,6 +16,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from server.downloads.artifacts import source_dir
 from tests.cli.conftest import Participant, clean_environment, free_port
 from tests.cli.push_support import (
     BUILT,
@@ -267,6 +268,7 @@ def test_the_getting_started_page_takes_a_fresh_virtualenv_to_a_ranked_submissio
         "install",
         "account",
         "template",
+        "simulator",
         "evaluate",
         "build",
         "push",
@@ -283,6 +285,18 @@ def test_the_getting_started_page_takes_a_fresh_virtualenv_to_a_ranked_submissio
         env = terminal_env(embedded, tmp_path, simulator=simulator)
         for line in block.lines:
             line = line.replace("NAME", "starter")  # the placeholder the page asks to fill
+            if block.needs == "source-install" and not line.startswith(("curl ", "tar ")):
+                # `make install` of the source (this suite's own install) is what gives the
+                # simulator's steps this virtualenv: the source is downloaded and unpacked, and
+                # the lines name its Makefile's target and the virtualenv it makes.
+                source = tmp_path / source_dir()
+                assert line in (
+                    f"make -C {source_dir()} install",
+                    f". {source_dir()}/.venv/bin/activate",
+                )
+                assert "\ninstall: " in (source / "Makefile").read_text()
+                assert "\nVENV := .venv\n" in (source / "Makefile").read_text()
+                continue
             answers = {"register": 2, "login": 1}.get(line.split()[1], 0)
             done = subprocess.run(
                 [

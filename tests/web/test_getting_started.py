@@ -4,6 +4,7 @@ filled in for this service; the contract generated from the suite; the downloads
 from __future__ import annotations
 
 import io
+import subprocess
 import tarfile
 import zipfile
 from collections.abc import Iterator
@@ -15,6 +16,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.challenges.contract import condition_effect
 from server.challenges.service import suite_of
+from server.downloads.artifacts import source_dir, source_file
 from server.kit.settings import Settings
 from server.models import Challenge
 from server.registry.published import LOCAL_POLICY_BASE, POLICY_BASE_REPOSITORY
@@ -61,7 +63,9 @@ def test_an_anonymous_reader_is_told_to_register_with_a_placeholder_name(
     registry_client: TestClient, tiny: Challenge
 ) -> None:
     blocks = {b.step: b for b in page_commands(registry_client.get(START).text)}
-    assert list(blocks) == ["install", "account", "template", "evaluate", "build", "push", "board"]
+    assert list(blocks) == [
+        *("install", "account", "template", "simulator", "evaluate", "build", "push", "board")
+    ]
     server = " --server http://testserver"
     assert blocks["account"].lines == [
         f"manieval register -u NAME --email you@example.org{server}",
@@ -97,7 +101,7 @@ def test_every_download_it_names_is_served(client: TestClient, tiny: Challenge) 
         for word in line.split()
         if "/downloads/" in word or word.endswith("suite.yaml")
     ]
-    assert len(urls) == 4, urls  # two wheels, the template, the suite
+    assert len(urls) == 5, urls  # two wheels, the template, the source, the suite
     for url in urls:
         assert client.get(url).status_code == 200, url
     assert client.get(urls[-1]).text == tiny.suite_yaml
@@ -171,6 +175,32 @@ def test_the_template_carries_the_base_dockerfile(client: TestClient) -> None:
     policy = served.extractfile("my-policy/Dockerfile")
     assert policy is not None
     assert f"ARG BASE={LOCAL_POLICY_BASE}\n" in policy.read().decode()
+
+
+def test_the_source_is_what_make_install_needs_and_nothing_else(client: TestClient) -> None:
+    served = client.get(f"/downloads/{source_file()}")
+    assert served.status_code == 200
+    archive = tarfile.open(fileobj=io.BytesIO(served.content))
+    members = {m.name.removeprefix(f"{source_dir()}/"): m for m in archive.getmembers()}
+    assert all(m.name.startswith(f"{source_dir()}/") for m in archive.getmembers())
+    makefile = archive.extractfile(members["Makefile"])
+    assert makefile is not None
+    assert "\ninstall: " in makefile.read().decode()
+    for needed in ("pyproject.toml", "constraints.txt", "scripts/install-python.sh"):
+        assert needed in members, needed
+    assert "evaluator/evaluation.py" in members
+    assert "suites/maniskill-core.yaml" in members
+    assert members["scripts/system-deps.sh"].mode == 0o755  # make runs it
+    assert members["docker/policy-base/build.sh"].mode == 0o755
+    assert not [n for n in members if "__pycache__" in n or ".egg-info" in n or "/." in n]
+    # Every part of the repository is served or left out on purpose: never a data directory,
+    # a virtualenv or anything else that happens to lie beside the service.
+    tracked = subprocess.run(
+        ["git", "ls-files"], cwd=REPO, capture_output=True, text=True, check=True
+    ).stdout.split()
+    left_out = {"tests", "testkit", "bench", ".ci", ".gitignore", ".dockerignore"}
+    tops = {path.split("/")[0] for path in tracked}
+    assert tops - left_out == {n.split("/")[0] for n in members}
 
 
 def test_an_unknown_download_is_a_404(client: TestClient) -> None:
