@@ -161,7 +161,7 @@ def participant_commands(url: str, registry: str, *, user: str = "NAME") -> list
     return [
         f"manieval register -u {user} --email {user}@example.org{server}",
         f"manieval login -u {user}{server}   # also logs Podman/Docker in to {registry}",
-        "docker/policy-base/build.sh   # the base image, once (as root, about a minute)",
+        "docker/policy-base/build.sh   # the base image, once, if `make install` did not (as root)",
         "cp -r examples/policy-template my-policy && cp -r evaluator/sdk/manieval_sdk my-policy/",
         "podman build -t my-policy my-policy   # or: docker build",
         f"manieval push my-policy --challenge {CHALLENGE} --wait{server}",

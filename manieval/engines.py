@@ -9,8 +9,8 @@ demo` start, supervise and stop next to the server.
   pulling from the registry with the pull-only credential.
 
 - The policy base: the image participants build on (docker/policy-base), copied from the
-  engine into the registry as ``manieval/policy-base:bookworm`` with ``skopeo``, so that the
-  getting-started page's build pulls it from this service (server/registry/published.py).
+  engine into the registry as ``manieval/policy-base:bookworm`` (manieval/policy_base.py), so
+  that the getting-started page's build pulls it from this service.
 
 ``MANIEVAL_DOCKER_ENGINE_URL`` names an engine of one's own instead (no Podman is started), and
 ``MANIEVAL_REGISTRY_DOMAIN`` a registry (none is started). What is
@@ -26,7 +26,6 @@ import logging
 import os
 import shutil
 import socket
-import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,15 +35,12 @@ from manieval.supervise import Supervised
 from server.kit.settings import Settings
 from server.registry.config import TOKEN_PATH, registry_config
 from server.registry.keys import ensure_signing_key
-from server.registry.published import LOCAL_POLICY_BASE, POLICY_BASE_REPOSITORY, policy_base
-from server.registry.service import key_directory, publish_token
+from server.registry.service import key_directory
 
 log = logging.getLogger(__name__)
 
 REGISTRY_BINARY = "docker-registry"
 ENGINE_BINARY = "podman"
-PUBLISHER_BINARY = "skopeo"
-PUBLISH_TIMEOUT_S = 600  # a first copy compresses about 170 MB: seconds, a minute on a busy CI
 INSTALL = "apt-get install -y podman docker-registry"
 
 
@@ -66,7 +62,8 @@ class EngineSettings(BaseSettings):
     """An engine of one's own (``unix:///run/podman/podman.sock``): no Podman is started."""
     publish_policy_base: bool = True
     """Copy the engine's policy base into the embedded registry at start (when both are
-    embedded), for participants to build on; false: the pages say how to build it instead."""
+    embedded), for participants to build on; false: nothing is copied (the pages name a base
+    the registry already has, else say how to build it)."""
 
 
 def engine_socket(data_dir: Path) -> Path:
@@ -178,47 +175,16 @@ class Engines:
         return problems
 
     def publish_policy_base(self) -> str | None:
-        """Copy the engine's policy base (docker/policy-base/build.sh's image) into the embedded
-        registry, unless the registry already has that very image; why it is not there, in
-        one line, or None. Nothing to do without both the registry and the engine embedded."""
+        """Copy the engine's policy base into the embedded registry (manieval/policy_base.py);
+        why it is not there, in one line, or None. Nothing to do without both embedded."""
+        from manieval.policy_base import publish_policy_base
+
         domain = self.registry_domain
         if not self.options.publish_policy_base or not self.embeds_registry:
             return None
         if domain is None or self.engine is None or self.engine_url is None:
             return None
-        instead = "participants build it from the template's base/Dockerfile instead"
-        skopeo = shutil.which(PUBLISHER_BINARY)
-        if skopeo is None:
-            return (
-                f"the policy base is not published ({PUBLISHER_BINARY} is not installed: "
-                f"apt-get install -y {PUBLISHER_BINARY}); {instead}"
-            )
-        local = _image_id(self.engine_url, LOCAL_POLICY_BASE)
-        if local is None:
-            return (
-                f"the policy base is not published: the engine has no {LOCAL_POLICY_BASE} "
-                f"(sudo docker/policy-base/build.sh makes it); {instead}"
-            )
-        target = f"docker://{policy_base(domain)}"
-        token = publish_token(self.settings, repository=POLICY_BASE_REPOSITORY)
-        if _published_config(skopeo, target, token) == local:
-            return None
-        copied = subprocess.run(
-            [
-                *(skopeo, "copy", "--quiet", "--src-daemon-host", self.engine_url),
-                # the embedded registry speaks plain HTTP on the loopback address
-                *("--dest-tls-verify=false", "--dest-registry-token", token),
-                *(f"docker-daemon:{LOCAL_POLICY_BASE}", target),
-            ],
-            capture_output=True,
-            text=True,
-            timeout=PUBLISH_TIMEOUT_S,
-        )
-        if copied.returncode != 0:
-            said = (copied.stderr.strip().splitlines() or ["no message"])[-1]
-            return f"the policy base could not be published to {domain}: {said}; {instead}"
-        log.info("published %s as %s", LOCAL_POLICY_BASE, policy_base(domain))
-        return None
+        return publish_policy_base(self.settings, domain=domain, engine_url=self.engine_url)
 
     def stop(self) -> None:
         for child in (self.engine, self.registry):
@@ -324,40 +290,6 @@ def _answers_http(addr: str) -> bool:
         return connection.getresponse().status in (200, 401)
     finally:
         connection.close()
-
-
-def _image_id(engine_url: str, reference: str) -> str | None:
-    """The engine's image ID for `reference` (its config's digest), or None without one."""
-    from docker.client import DockerClient
-    from docker.errors import DockerException, ImageNotFound
-
-    client = DockerClient(base_url=engine_url, timeout=60)
-    try:
-        return str(client.images.get(reference).id)
-    except ImageNotFound:
-        return None
-    except DockerException as exc:
-        log.warning("cannot ask the engine for %s: %s", reference, exc)
-        return None
-    finally:
-        client.close()
-
-
-def _published_config(skopeo: str, target: str, token: str) -> str | None:
-    """The config digest of the manifest at `target` (what the engine calls its image ID), or
-    None when the registry has none there."""
-    inspected = subprocess.run(
-        [skopeo, "inspect", "--raw", "--tls-verify=false", "--registry-token", token, target],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    if inspected.returncode != 0:
-        return None
-    try:
-        return str(json.loads(inspected.stdout)["config"]["digest"])
-    except (ValueError, KeyError, TypeError):
-        return None
 
 
 def _answers_socket(path: Path) -> bool:

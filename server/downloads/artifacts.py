@@ -9,10 +9,12 @@ import gzip
 import io
 import os
 import re
+import subprocess
 import tarfile
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -26,22 +28,31 @@ BASE_DOCKERFILE = REPO / "docker" / "policy-base" / "Dockerfile"  # the template
 TEMPLATE_FILE = "policy-template.tar.gz"
 TEMPLATE_DIR = "my-policy"  # what the archive unpacks to
 WHEEL_TYPE = "application/zip"
+GZIP_TYPE = "application/gzip"
 EPOCH_SECONDS = 315532800  # 1980-01-01, the wheels' zip time
 
 # The CLI's modules that compose the service (they import the server, the worker or the
 # simulator): left out of the slim CLI, whose `manieval serve`, `demo`, `db`, `admin`,
 # `challenge` and `evaluate` say how to get them (manieval/cli.py).
 SERVER_SIDE = frozenset(
-    {"demo.py", "engines.py", "quiet.py", "serve.py", "service.py", "supervise.py"}
+    {
+        "demo.py",
+        "engines.py",
+        "policy_base.py",
+        "quiet.py",
+        "serve.py",
+        "service.py",
+        "supervise.py",
+    }
 )
 # The participant commands' third-party packages, pinned as the service's own pyproject pins
 # them (names only here: the versions come from there).
 CLI_REQUIRES = ("typer", "rich", "httpx", "platformdirs")
 # The evaluator's pure-Python modules that a participant command uses (`manieval compare`).
 CLI_EVALUATOR_MODULES = ("__init__.py", "paired.py", "stats.py")
-# What the source download holds: what `make install` and `manieval evaluate` need, named one by
-# one so that nothing else in the directory the service runs from (a data directory, a
-# virtualenv, local files) is ever served; the suite, the benchmarks and CI stay out.
+# What the source download holds: what `make install` and `manieval evaluate` need, and of it
+# only what git tracks, so that nothing else in the directory the service runs from (a data
+# directory, a virtualenv, an operator's keys) is ever served; the suite, benchmarks, CI stay out.
 SOURCE_FILES = ("Makefile", "README.md", "pyproject.toml", "constraints.txt", "alembic.ini")
 SOURCE_DIRS = (
     *("alembic", "docker", "docs", "evaluator", "examples", "internal_api", "k8s", "manieval"),
@@ -124,7 +135,7 @@ def cli_spec() -> WheelSpec:
 def template_archive() -> bytes:
     """The policy template with the SDK beside its Dockerfile and the base's Dockerfile in
     `base/`, as `my-policy/`."""
-    if not TEMPLATE.is_dir():
+    if not (TEMPLATE.is_dir() and BASE_DOCKERFILE.is_file()):
         raise NotServed("the policy template is not installed beside this service")
     files = {
         f"{TEMPLATE_DIR}/{p.relative_to(TEMPLATE).as_posix()}": p.read_bytes()
@@ -136,6 +147,7 @@ def template_archive() -> bytes:
     return _tar_gz({path: (data, 0o644) for path, data in files.items()})
 
 
+@cache
 def source_dir() -> str:
     """What the source download unpacks to: `manieval-VERSION`."""
     return f"manieval-{_project(REPO / 'pyproject.toml')['version']}"
@@ -145,20 +157,40 @@ def source_file() -> str:
     return f"{source_dir()}.tar.gz"
 
 
-def source_archive() -> bytes:
-    """The service's own source, as `manieval-VERSION/`: :data:`SOURCE_FILES` and the files
-    under :data:`SOURCE_DIRS`, executables kept executable."""
-    if not (REPO / "Makefile").is_file():
+def tracked_source(root: Path = REPO) -> list[str]:
+    """The files of the source download, relative to `root`: those git tracks under
+    :data:`SOURCE_FILES` and :data:`SOURCE_DIRS` (never an ignored or untracked file lying
+    there), regular files only. Raises :class:`NotServed` outside a git checkout."""
+    if not (root / "Makefile").is_file():
         raise NotServed("the service's source is not installed beside it")
-    paths = [REPO / name for name in SOURCE_FILES]
-    for name in SOURCE_DIRS:
-        paths += sorted(p for p in (REPO / name).rglob("*") if p.is_file() and not p.is_symlink())
+    try:
+        listed = subprocess.run(
+            ["git", "-C", str(root), "ls-files", "-z", "--", *SOURCE_FILES, *SOURCE_DIRS],
+            capture_output=True,
+            timeout=60,
+        )
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise NotServed(f"git cannot list the service's source: {exc}") from None
+    if listed.returncode != 0:
+        raise NotServed("the service does not run from a git checkout of its source")
+    names = [name for name in listed.stdout.decode("utf-8", "replace").split("\0") if name]
+    return [
+        name
+        for name in names
+        if not _NOT_SOURCE.search(name)
+        and (root / name).is_file()
+        and not (root / name).is_symlink()
+    ]
+
+
+def source_archive(root: Path = REPO) -> bytes:
+    """The service's own source (:func:`tracked_source`) as `manieval-VERSION/`, executables
+    kept executable."""
     files = {}
-    for path in paths:
-        relative = path.relative_to(REPO).as_posix()
-        if not _NOT_SOURCE.search(relative):
-            mode = 0o755 if os.access(path, os.X_OK) else 0o644
-            files[f"{source_dir()}/{relative}"] = (path.read_bytes(), mode)
+    for name in tracked_source(root):
+        path = root / name
+        mode = 0o755 if os.access(path, os.X_OK) else 0o644
+        files[f"{source_dir()}/{name}"] = (path.read_bytes(), mode)
     return _tar_gz(files)
 
 
@@ -184,18 +216,32 @@ def wheel_files() -> tuple[str, ...]:
 
 
 @cache
-def downloads() -> dict[str, Download]:
-    """Every download by its file name, built once per process (from the running sources)."""
-    found: dict[str, Download] = {}
+def served() -> dict[str, tuple[Callable[[], bytes], str]]:
+    """What this service serves, by file name: how each is built, and its media type. Only
+    the sources are looked at here; each file is built when first asked for."""
+    found: dict[str, tuple[Callable[[], bytes], str]] = {}
     for spec in (sdk_spec, cli_spec):
         try:
-            built = spec()
+            wheel = spec()
         except NotServed:
             continue
-        found[built.filename] = Download(built.filename, build_wheel(built), WHEEL_TYPE)
-    for name, archive in ((TEMPLATE_FILE, template_archive), (source_file(), source_archive)):
-        try:
-            found[name] = Download(name, archive(), "application/gzip")
-        except NotServed:
-            pass
+        found[wheel.filename] = (partial(build_wheel, wheel), WHEEL_TYPE)
+    if TEMPLATE.is_dir() and BASE_DOCKERFILE.is_file():
+        found[TEMPLATE_FILE] = (template_archive, GZIP_TYPE)
+    try:
+        if tracked_source():
+            found[source_file()] = (source_archive, GZIP_TYPE)
+    except NotServed:
+        pass
     return found
+
+
+def served_download(filename: str) -> Download | None:
+    """One download, built once per process (from the running sources), or None."""
+    return _built(filename) if filename in served() else None
+
+
+@cache
+def _built(filename: str) -> Download:  # only names served() knows: a bounded cache
+    build, media_type = served()[filename]
+    return Download(filename, build(), media_type)

@@ -27,13 +27,20 @@ def own_registry_of(settings: Settings) -> OwnRegistry | None:
     if settings.registry_domain is None:
         return None
     domain = canonical_domain(settings.registry_domain)
-    insecure = domain in {canonical_domain(d) for d in settings.insecure_registries}
-    scheme = "http" if insecure or _is_loopback(domain) else "https"
+    scheme = "http" if plain_http(settings, domain) else "https"
     return OwnRegistry(
         domain=domain,
         base_url=(settings.registry_internal_url or f"{scheme}://{domain}").rstrip("/"),
         pull_token=lambda repository: service.server_pull_token(settings, repository=repository),
     )
+
+
+def plain_http(settings: Settings, domain: str) -> bool:
+    """Whether the registry at `domain` is spoken to over plain HTTP: one the settings call
+    insecure, or one on the loopback address."""
+    domain = canonical_domain(domain)
+    insecure = domain in {canonical_domain(d) for d in settings.insecure_registries}
+    return insecure or _is_loopback(domain)
 
 
 def _is_loopback(domain: str) -> bool:

@@ -96,10 +96,11 @@ def grant(requested: Sequence[Access], grantee: Grantee) -> list[Access]:
         if access.type != "repository" or not valid_repository(access.name):
             continue
         allowed: set[str] = set()
-        if grantee.namespace is not None and access.name.split("/")[0] == grantee.namespace:
-            allowed = {"pull", "push"}
-        elif grantee.pull_anywhere or access.name.split("/")[0] == SERVICE_NAMESPACE:
+        namespace = access.name.split("/")[0]
+        if namespace == SERVICE_NAMESPACE or grantee.pull_anywhere:  # first: whatever the name
             allowed = {"pull"}
+        elif grantee.namespace is not None and namespace == grantee.namespace:
+            allowed = {"pull", "push"}
         actions = allowed & set(access.actions)
         if actions:
             granted.setdefault(access.name, set()).update(actions)

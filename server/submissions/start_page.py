@@ -13,7 +13,13 @@ from fastapi.responses import Response
 from server.accounts.deps import ViewerDep
 from server.challenges.contract import contract_of
 from server.challenges.service import get_challenge, suite_of
-from server.downloads.artifacts import TEMPLATE_DIR, source_dir, source_file, wheel_files
+from server.downloads.artifacts import (
+    TEMPLATE_DIR,
+    served,
+    source_dir,
+    source_file,
+    wheel_files,
+)
 from server.kit.deps import DBDep
 from server.kit.pages import render
 from server.models import Challenge
@@ -35,7 +41,7 @@ class StartCommands:
     install: list[str]
     account: list[str]
     template: list[str]
-    simulator: list[str]
+    simulator: list[str]  # none where the service does not serve its source
     evaluate: list[str]
     build: list[str]
     push: list[str]
@@ -69,7 +75,9 @@ def start_commands(
             f"tar xzf {source_file()}",
             f"make -C {source_dir()} install",
             f". {source_dir()}/.venv/bin/activate",
-        ],
+        ]
+        if source_file() in served()
+        else [],
         evaluate=[
             f"curl -fsSL {base}/challenges/{slug}/suite.yaml -o {slug}.yaml",
             f"manieval evaluate --policy {TEMPLATE_DIR} --suite {slug}.yaml --phase {phase}"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Annotated
@@ -22,6 +23,7 @@ from server.kit.errors import AppError, Invalid
 from server.kit.pages import Viewer, admin_signed_in, redirect, render, signed_in
 from server.kit.settings import Settings
 from server.models import Challenge, State, Submission, User, utcnow
+from server.registry.own import plain_http
 from server.registry.published import LOCAL_POLICY_BASE, policy_base
 from server.registry.tokens import namespace_for
 from server.submissions.deps import services
@@ -33,6 +35,7 @@ router = APIRouter(include_in_schema=False)
 MAX_IMAGE_LENGTH = 512  # as the API's SubmitIn
 DEFAULT_CLI_SERVER = "http://127.0.0.1:8000"  # what `manieval` reaches without --server
 PER_PAGE = 50
+PUBLISHED_BASE_TTL_S = 60.0  # how long a page trusts what the registry said of the base
 PageNo = Annotated[int, Query(ge=1, le=100_000)]
 
 
@@ -139,25 +142,26 @@ def template_commands(request: Request, *, published: str | None) -> tuple[list[
 
 def published_base(request: Request) -> str | None:
     """The policy base on this service's registry, pinned by digest, or None when the service
-    runs no registry or its registry does not have it (server/registry/published.py)."""
+    runs no registry or its registry does not have it (server/registry/published.py). Asked
+    of the registry at most once a minute per app: pages never wait on it more often."""
     domain = services(request).settings.registry_domain
     if domain is None:
         return None
+    now = time.monotonic()
+    known: tuple[float, str | None] | None = getattr(request.app.state, "published_base", None)
+    if known is not None and now < known[0]:
+        return known[1]
     try:
-        return services(request).resolve(policy_base(domain)).pinned
+        found: str | None = services(request).resolve(policy_base(domain)).pinned
     except AppError:  # not published, or the registry is down: the page says how to build it
-        return None
+        found = None
+    request.app.state.published_base = (now + PUBLISHED_BASE_TTL_S, found)
+    return found
 
 
 def _tls_flag(settings: Settings, domain: str) -> str:
     """Podman speaks plain HTTP to a registry only when told."""
-    insecure = domain in settings.insecure_registries or _loopback(domain)
-    return " --tls-verify=false" if insecure else ""
-
-
-def _loopback(domain: str) -> bool:
-    host = domain.rsplit(":", 1)[0]
-    return host in ("localhost", "[::1]") or host.startswith("127.")
+    return " --tls-verify=false" if plain_http(settings, domain) else ""
 
 
 @router.get("/challenges/{slug}/submit")

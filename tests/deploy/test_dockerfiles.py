@@ -162,6 +162,7 @@ def needed_in_images() -> list[str]:
     packages = [pattern.rstrip("*") for pattern in include]
     extra = ["alembic", "alembic.ini", "suites", "evaluator/sdk/manieval_sdk", "web"]
     extra += ["docs/metrics.md"]  # served as /help/metrics
+    extra += ["examples/policy-template", "docker/policy-base/Dockerfile"]  # the template download
     paths = [*packages, *extra]
     return [
         str(f.relative_to(REPO))

@@ -17,7 +17,7 @@ from typing import Any
 import httpx
 import pytest
 
-from manieval import engines as engines_module
+from manieval import policy_base as policy_base_module
 from manieval.engines import Engines, EngineSettings
 from manieval.supervise import Supervised
 from server.kit.settings import Settings
@@ -235,10 +235,26 @@ def test_the_policy_base_is_published_in_the_registry_once(
         assert engines.publish_policy_base() is None
         assert ran == ["inspect"]  # the registry has it already
 
-        monkeypatch.setattr(engines_module, "LOCAL_POLICY_BASE", "localhost/manieval-none:x")
+        monkeypatch.setattr(policy_base_module, "LOCAL_POLICY_BASE", "localhost/manieval-none:x")
         said = engines.publish_policy_base()
         assert said is not None
         assert "the engine has no localhost/manieval-none:x" in said
         assert "the template's base/Dockerfile" in said
     finally:
         engines.stop()
+
+
+def test_the_copy_reads_the_engine_and_writes_with_the_servers_token() -> None:
+    target = "docker://127.0.0.1:5000/manieval/policy-base:bookworm"
+    args = policy_base_module.copy_args(
+        "/usr/bin/skopeo", engine_url="unix:///d/engine/podman.sock", target=target, token="T"
+    )
+    assert args[:2] == ["/usr/bin/skopeo", "copy"]
+    assert args[args.index("--src-daemon-host") + 1] == "unix:///d/engine/podman.sock"
+    assert args[args.index("--dest-registry-token") + 1] == "T"
+    assert "--dest-tls-verify=false" in args  # the embedded registry: plain HTTP on loopback
+    assert args[-2:] == [f"docker-daemon:{LOCAL_POLICY_BASE}", target]
+    inspect = policy_base_module.inspect_args("skopeo", target=target, token="T")
+    assert inspect == [
+        *("skopeo", "inspect", "--raw", "--tls-verify=false", "--registry-token", "T", target)
+    ]

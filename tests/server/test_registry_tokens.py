@@ -122,6 +122,8 @@ PULLER = Grantee(subject="manieval-puller", namespace=None, pull_anywhere=True)
             [("manieval/policy-base", ("pull",))],
         ),
         (["repository:manievalx/policy-base:pull"], ALICE, []),
+        # ... even for an account that held the name (it is reserved): the rule comes first
+        (["repository:manieval/x:push"], Grantee(subject="manieval", namespace="manieval"), []),
     ],
 )
 def test_scopes_are_granted_only_within_the_callers_rights(

@@ -14,13 +14,18 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.app import create_app
 from server.challenges.contract import condition_effect
 from server.challenges.service import suite_of
 from server.downloads.artifacts import source_dir, source_file
+from server.kit.image_refs import ImageReference, ResolvedImage
+from server.kit.ratelimit import MemoryRateLimiter
 from server.kit.settings import Settings
 from server.models import Challenge
 from server.registry.published import LOCAL_POLICY_BASE, POLICY_BASE_REPOSITORY
-from testkit.factories import make_user
+from server.submissions import start_page
+from server.submissions.images import image_resolver
+from testkit.factories import FakeRegistry, RecordingQueue, make_user
 from tests.web.helpers import browser
 from tests.web.start_commands import page_commands
 from tests.web.test_web_push_commands import REGISTRY, app_client
@@ -175,6 +180,44 @@ def test_the_template_carries_the_base_dockerfile(client: TestClient) -> None:
     policy = served.extractfile("my-policy/Dockerfile")
     assert policy is not None
     assert f"ARG BASE={LOCAL_POLICY_BASE}\n" in policy.read().decode()
+    build = (REPO / "docker" / "policy-base" / "build.sh").read_text()
+    assert f"image=${{MANIEVAL_BASE_IMAGE:-{LOCAL_POLICY_BASE}}}\n" in build  # the one name
+
+
+def test_the_registry_is_asked_for_the_base_at_most_once_a_minute(
+    settings: Settings, sessions: sessionmaker[Session], tiny: Challenge
+) -> None:
+    asked: list[str] = []
+
+    class Counting(FakeRegistry):
+        def resolve(self, ref: ImageReference, *, max_bytes: int) -> ResolvedImage:
+            asked.append(str(ref))
+            return super().resolve(ref, max_bytes=max_bytes)
+
+    configured = settings.model_copy(
+        update={"registry_domain": REGISTRY, "allowed_registries": [REGISTRY]}
+    )
+    app = create_app(
+        configured,
+        sessions=sessions,
+        work=RecordingQueue(),
+        resolve=image_resolver(configured, Counting()),
+        limiter=MemoryRateLimiter(),
+        background=False,
+    )
+    with TestClient(app, base_url="http://testserver") as client:
+        for _ in range(3):
+            assert "--build-arg BASE=" in client.get(START).text
+    assert len(asked) == 1, asked
+
+
+def test_without_its_source_served_the_page_says_to_install_from_a_checkout(
+    client: TestClient, tiny: Challenge, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(start_page, "served", dict)  # as the control-plane image: no source
+    page = client.get(START).text
+    assert "simulator" not in [b.step for b in page_commands(page)]
+    assert "This service does not serve its source" in page
 
 
 def test_the_source_is_what_make_install_needs_and_nothing_else(client: TestClient) -> None:
@@ -201,6 +244,7 @@ def test_the_source_is_what_make_install_needs_and_nothing_else(client: TestClie
     left_out = {"tests", "testkit", "bench", ".ci", ".gitignore", ".dockerignore"}
     tops = {path.split("/")[0] for path in tracked}
     assert tops - left_out == {n.split("/")[0] for n in members}
+    assert set(members) <= set(tracked)
 
 
 def test_an_unknown_download_is_a_404(client: TestClient) -> None:
