@@ -13,7 +13,7 @@ import subprocess
 import tarfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -319,15 +319,22 @@ def _tiny_image(podman: str, name: str) -> None:
     )
 
 
-def test_podman_login_and_push_work_in_the_own_namespace_only(stack: Stack, tmp_path: Path) -> None:
-    podman = require_tool("podman")
-    env = {**os.environ, "REGISTRY_AUTH_FILE": str(tmp_path / "auth.json")}
-    name = f"localhost/manieval-registry-test:{os.getpid()}"
+def podman_as_a_user(podman: str, home: Path) -> Callable[..., subprocess.CompletedProcess[str]]:
+    """`podman ARGS` with a login file of its own in `home`, as one user's terminal."""
+    env = {**os.environ, "REGISTRY_AUTH_FILE": str(home / "auth.json")}
 
     def run(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
             [podman, *args], env=env, capture_output=True, text=True, timeout=300, check=False
         )
+
+    return run
+
+
+def test_podman_login_and_push_work_in_the_own_namespace_only(stack: Stack, tmp_path: Path) -> None:
+    podman = require_tool("podman")
+    run = podman_as_a_user(podman, tmp_path)
+    name = f"localhost/manieval-registry-test:{os.getpid()}"
 
     _tiny_image(podman, name)
     try:
@@ -354,14 +361,9 @@ def test_what_the_server_publishes_every_login_pulls_and_nobody_pushes(
     """The service's namespace (the policy base's): published with a token only the server
     signs (`manieval admin publish-token`), pulled by any participant, pushed by none."""
     podman, skopeo = require_tool("podman"), require_tool("skopeo")
-    env = {**os.environ, "REGISTRY_AUTH_FILE": str(tmp_path / "auth.json")}
+    run = podman_as_a_user(podman, tmp_path)
     local = f"localhost/manieval-published-test:{os.getpid()}"
     published = f"{stack.domain}/manieval/published-test:v1"
-
-    def run(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run(
-            [podman, *args], env=env, capture_output=True, text=True, timeout=300, check=False
-        )
 
     _tiny_image(podman, local)
     try:
