@@ -320,12 +320,14 @@ def run_shard(
     except Stopped:
         pass  # cancelled: the episode in progress, and those after it, are recorded not_run
     finally:
-        if first is not None:
-            first.close()
-        outcome.policy_time_s = endpoint.policy_time_s
-        code = process.exit_code()  # before stop(): our own SIGTERM is not the policy's exit
-        endpoint.close()
-        process.stop()
+        try:  # whatever fails on the way out, the policy is stopped (its container removed)
+            if first is not None:
+                first.close()
+            outcome.policy_time_s = endpoint.policy_time_s
+            code = process.exit_code()  # before stop(): our own SIGTERM is not the policy's exit
+            endpoint.close()
+        finally:
+            process.stop()
     if outcome.abort is not None:
         run_index, index, abort = outcome.abort
         kind = limit_reached(process) or abort.kind  # a sandbox stopped it at a resource limit

@@ -218,6 +218,7 @@ class Service:
                 log.warning("an evaluation did not stop within %.0f s", WORKER_STOP_S)
             if not self.worker.started:
                 return  # it claimed nothing: what a crashed run left is for the next start
+            self._remove_policy_containers()
             try:
                 with self.sessions.begin() as db:
                     self.interrupted = end_stopped(db, worker=self.worker.settings.worker_name)
@@ -226,6 +227,30 @@ class Service:
                 return
             if self.interrupted:
                 log.info("submissions %s interrupted: queued again", self.interrupted)
+
+    def _remove_policy_containers(self) -> None:
+        """Each stopped evaluation removes its policy's container itself; whatever one left
+        (an engine too slow to answer its removal, say) goes now, while the engine still runs,
+        not at the reconciler's first pass after the next start."""
+        assert self.worker is not None
+        settings = self.worker.settings
+        if settings.docker_engine_url is None:
+            return
+        from docker.errors import DockerException
+
+        from worker.containers import engine, remove_leftovers
+
+        try:
+            client = engine(settings.docker_engine_url)
+            try:
+                left = remove_leftovers(client, service=settings.service_id, keep=set(), grace_s=0)
+            finally:
+                client.close()
+        except DockerException as exc:  # the reconciler of the next start removes them
+            log.warning("the policy containers could not be listed for removal: %s", exc)
+            return
+        if left:
+            log.warning("removed policy containers the stopped evaluations left: %s", left)
 
     def _stop_engines(self) -> None:
         if self.engines is not None:
