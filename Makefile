@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 INSTALLED := $(VENV)/.installed
 
-.PHONY: demo test lint system base-image install bench clean
+.PHONY: demo test lint system base-image install install-evaluator bench clean
 
 system:
 	@scripts/system-deps.sh
@@ -26,6 +26,20 @@ base-image: system
 	fi
 
 install: system $(INSTALLED) base-image
+
+# What `manieval evaluate` needs and no more: a participant scoring a policy locally (the
+# getting-started page's step 5). The simulator's system packages and ManiEval without the
+# service's and the tests' tools; `make install` later adds those.
+EVALUATOR_INSTALLED := $(VENV)/.evaluator-installed
+
+$(EVALUATOR_INSTALLED): pyproject.toml evaluator/sdk/pyproject.toml constraints.txt scripts/install-python.sh
+	@echo "Installing ManiEval's evaluator into $(VENV) (first time: a few minutes)"
+	@scripts/install-python.sh $(VENV) ''
+	@touch $@
+
+install-evaluator:
+	@scripts/system-deps.sh --evaluator
+	@$(MAKE) --no-print-directory $(if $(wildcard $(INSTALLED)),$(INSTALLED),$(EVALUATOR_INSTALLED))
 
 lint: install
 	$(BIN)/ruff format --check .

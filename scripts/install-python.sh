@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
-# Create the virtualenv and install ManiEval with its pinned dependencies (constraints.txt).
+# Create the virtualenv and install ManiEval with its pinned dependencies (constraints.txt):
+# install-python.sh [VENV] [EXTRAS], EXTRAS `dev` (the default: the tests' and linters' tools)
+# or empty (ManiEval alone, what `manieval evaluate` needs).
 set -euo pipefail
 venv=${1:-.venv}
+extras=${2-dev}
 [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
@@ -14,4 +17,4 @@ pip_install() {
   fi
 }
 pip_install --upgrade pip
-pip_install -c constraints.txt -e evaluator/sdk -e '.[dev]'
+pip_install -c constraints.txt -e evaluator/sdk -e ".${extras:+[$extras]}"

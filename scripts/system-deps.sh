@@ -1,8 +1,12 @@
 #!/usr/bin/env bash
 # Install the system packages ManiEval needs (Debian/Ubuntu), or say the one command to run.
 # Fast when everything is present: it only asks dpkg. See ../shared/PLATFORM_NOTES.md for why
-# each package is here.
+# each package is here. With --evaluator, only what `manieval evaluate` needs (a participant
+# scoring a policy locally: `make install-evaluator`), not the service's nor its tests'.
 set -euo pipefail
+
+evaluator_only=0
+[ "${1:-}" = --evaluator ] && evaluator_only=1
 
 missing=()
 need_backports=0
@@ -17,6 +21,12 @@ if [ -z "$mesa" ] || dpkg --compare-versions "$mesa" lt 24.3; then
   need_backports=1
 fi
 python3 -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
+# Local policies (`manieval evaluate --policy`, the demo's local: policies) run under bubblewrap;
+# as root the sandbox is entered through util-linux's unshare and setpriv, and mount.
+command -v bwrap >/dev/null || missing+=(bubblewrap)
+command -v setpriv >/dev/null || missing+=(util-linux)
+command -v mount >/dev/null || missing+=(mount)
+if [ "$evaluator_only" = 0 ]; then
 # The tests pin image tags to digests against a real OCI registry (CNCF distribution).
 command -v docker-registry >/dev/null || missing+=(docker-registry)
 # The worker tests run real Celery workers against a private redis-server they start.
@@ -28,15 +38,11 @@ command -v debootstrap >/dev/null || missing+=(debootstrap)
 # `manieval serve` and the demo publish that base in their registry with skopeo.
 command -v skopeo >/dev/null || missing+=(skopeo)
 command -v openssl >/dev/null || missing+=(openssl)  # signs the test registry's tokens
-# Local policies (`manieval evaluate --policy`, the demo's local: policies) run under bubblewrap;
-# as root the sandbox is entered through util-linux's unshare and setpriv, and mount.
-command -v bwrap >/dev/null || missing+=(bubblewrap)
-command -v setpriv >/dev/null || missing+=(util-linux)
-command -v mount >/dev/null || missing+=(mount)
 # Browser tests drive Debian's Chromium through Playwright (no browser download needed).
 [ -x /usr/bin/chromium ] || missing+=(chromium)
 # The deployment tests render the kustomize overlays with kubectl's embedded kustomize.
 command -v kubectl >/dev/null || missing+=(kubernetes-client)
+fi
 
 [ ${#missing[@]} -eq 0 ] && exit 0
 

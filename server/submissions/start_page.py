@@ -73,7 +73,7 @@ def start_commands(
         simulator=[
             f"curl -fsSLO {base}/downloads/{source_file()}",
             f"tar xzf {source_file()}",
-            f"make -C {source_dir()} install",
+            f"make -C {source_dir()} install-evaluator",
             f". {source_dir()}/.venv/bin/activate",
         ]
         if source_file() in served()

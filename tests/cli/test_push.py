@@ -286,15 +286,15 @@ def test_the_getting_started_page_takes_a_fresh_virtualenv_to_a_ranked_submissio
         for line in block.lines:
             line = line.replace("NAME", "starter")  # the placeholder the page asks to fill
             if block.needs == "source-install" and not line.startswith(("curl ", "tar ")):
-                # `make install` of the source (this suite's own install) is what gives the
-                # simulator's steps this virtualenv: the source is downloaded and unpacked, and
-                # the lines name its Makefile's target and the virtualenv it makes.
+                # `make install-evaluator` of the source (a part of this suite's own install)
+                # is what gives the simulator's steps this virtualenv: the source is downloaded
+                # and unpacked, and the lines name its Makefile's target and its virtualenv.
                 source = tmp_path / source_dir()
                 assert line in (
-                    f"make -C {source_dir()} install",
+                    f"make -C {source_dir()} install-evaluator",
                     f". {source_dir()}/.venv/bin/activate",
                 )
-                assert "\ninstall: " in (source / "Makefile").read_text()
+                assert "\ninstall-evaluator:\n" in (source / "Makefile").read_text()
                 assert "\nVENV := .venv\n" in (source / "Makefile").read_text()
                 continue
             answers = {"register": 2, "login": 1}.get(line.split()[1], 0)

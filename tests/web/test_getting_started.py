@@ -228,7 +228,7 @@ def test_the_source_is_what_make_install_needs_and_nothing_else(client: TestClie
     assert all(m.name.startswith(f"{source_dir()}/") for m in archive.getmembers())
     makefile = archive.extractfile(members["Makefile"])
     assert makefile is not None
-    assert "\ninstall: " in makefile.read().decode()
+    assert "\ninstall-evaluator:\n" in makefile.read().decode()
     for needed in ("pyproject.toml", "constraints.txt", "scripts/install-python.sh"):
         assert needed in members, needed
     assert "evaluator/evaluation.py" in members
