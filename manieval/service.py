@@ -174,7 +174,11 @@ class Service:
         `start_engines()` first."""
         self._worker_thread.start()
         try:
-            self.server.run()
+            # The stop signals are ours from here, not only once uvicorn's loop runs: a Ctrl-C
+            # while the loop is being built stops as cleanly as one a second later (it used to
+            # raise inside the loop's constructor, whose half-made loop then failed to close).
+            with self.server.capture_signals():
+                self.server.run()
         finally:
             if not self.server.force_exit:  # a second Ctrl-C: `end_process` ends what runs
                 self.stop_work()  # done already when a signal stopped the server
