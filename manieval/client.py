@@ -7,6 +7,7 @@ attributes), `NotLoggedIn` when a call needs a token and there is none.
 
 from __future__ import annotations
 
+import ipaddress
 import re
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -135,8 +136,24 @@ def normalise_server(url: str) -> str:
 
 
 def is_loopback(server: str) -> bool:
+    """Whether the server URL names this machine: ``localhost`` or a loopback address
+    (127.0.0.0/8, ::1). A name that merely begins with ``127.`` is another machine: plain HTTP
+    to it is warned about (a password) or refused (registry credentials) like any other.
+
+    The server's side of the rule is `server.registry.own.loopback_domain` (the server does not
+    import this package) and the SDK's is `manieval_sdk.openpi.mapping.loopback_url`."""
     host = urlsplit(server).hostname or ""
-    return host in ("localhost", "::1") or host.startswith("127.")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def is_loopback_domain(domain: str) -> bool:
+    """`is_loopback` for a registry's ``HOST[:PORT]`` (``[::1]:5000`` for IPv6)."""
+    return is_loopback(f"//{domain}")
 
 
 @dataclass(frozen=True)

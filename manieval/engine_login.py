@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from rich.text import Text
 
 from manieval import render
-from manieval.client import ApiError, Client, is_loopback
+from manieval.client import ApiError, Client, is_loopback, is_loopback_domain
 from manieval.errors import ExitCode, fail
 
 ENGINES = ("podman", "docker")
@@ -63,14 +63,9 @@ def require_engine(choice: str | None) -> Engine:
     return engine
 
 
-def loopback(domain: str) -> bool:
-    host = domain.rsplit(":", 1)[0]
-    return host in ("localhost", "[::1]") or host.startswith("127.")
-
-
 def tls_flags(engine: Engine, domain: str) -> list[str]:
     """Podman speaks plain HTTP to a loopback registry only when told (Docker does anyway)."""
-    return ["--tls-verify=false"] if engine.name == "podman" and loopback(domain) else []
+    return ["--tls-verify=false"] if engine.name == "podman" and is_loopback_domain(domain) else []
 
 
 def registry_of(client: Client, option: str | None) -> str:
@@ -109,7 +104,7 @@ def find_registry(client: Client, option: str | None) -> str | None:
 
 def login_command(engine_name: str, domain: str, username: str) -> str:
     """The one command a participant runs to log an engine in themselves."""
-    flags = " --tls-verify=false" if engine_name == "podman" and loopback(domain) else ""
+    flags = " --tls-verify=false" if engine_name == "podman" and is_loopback_domain(domain) else ""
     return f"{engine_name} login{flags} --username {username} {domain}   (password: an API token)"
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from manieval.client import is_loopback_domain
 from manieval.supervise import Supervised
 from server.kit.settings import Settings
 from server.registry.config import TOKEN_PATH, registry_config
@@ -256,7 +257,7 @@ class Engines:
             runtime.chmod(0o700)
             env["XDG_RUNTIME_DIR"] = str(runtime)
             env["REGISTRY_AUTH_FILE"] = str(auth_file)
-            if _loopback(domain):
+            if is_loopback_domain(domain):
                 registries = base / "registries.conf"
                 registries.write_text(f'[[registry]]\nlocation = "{domain}"\ninsecure = true\n')
                 env["CONTAINERS_REGISTRIES_CONF"] = str(registries)
@@ -274,11 +275,6 @@ def _containers_conf(base: Path) -> Path:
     path = base / "containers.conf"
     path.write_text("\n".join(lines) + "\n")
     return path
-
-
-def _loopback(domain: str) -> bool:
-    host = domain.rsplit(":", 1)[0]
-    return host in ("localhost", "[::1]") or host.startswith("127.")
 
 
 def _answers_http(addr: str) -> bool:

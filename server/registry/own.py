@@ -40,10 +40,12 @@ def plain_http(settings: Settings, domain: str) -> bool:
     insecure, or one on the loopback address."""
     domain = canonical_domain(domain)
     insecure = domain in {canonical_domain(d) for d in settings.insecure_registries}
-    return insecure or _is_loopback(domain)
+    return insecure or loopback_domain(domain)
 
 
-def _is_loopback(domain: str) -> bool:
+def loopback_domain(domain: str) -> bool:
+    """Whether a registry's ``HOST[:PORT]`` is on this machine: ``localhost`` or a loopback
+    address (127.0.0.0/8, ``[::1]``); a name that merely begins with ``127.`` is not."""
     host = domain.rsplit(":", 1)[0] if not domain.endswith("]") else domain
     host = host.strip("[]")
     if host == "localhost":
