@@ -66,8 +66,7 @@ def load_challenge(
     suite = load_suite(suite_ref)
     for name in [*options.opens, *options.closes]:
         suite.phase(name)  # SuiteError names the phases that exist
-    if options.quota_per_day < 1 or options.quota_concurrent < 1:
-        raise Invalid("quotas must be at least 1")
+    _check_quotas(quota_per_day=options.quota_per_day, quota_concurrent=options.quota_concurrent)
     text = Path(suite_ref).read_text() if Path(suite_ref).exists() else None
     suite_yaml = text if text is not None else _bundled_text(suite_ref)
     stated = suite.package_versions
@@ -88,6 +87,7 @@ def load_challenge(
         .where(Challenge.slug == suite.name)
     )
     kept_versions = {} if challenge is None else suite_of(challenge).package_versions
+    before = None if challenge is None else _loaded_of(challenge)
     if challenge is None:
         challenge = Challenge(slug=suite.name)
         db.add(challenge)
@@ -141,7 +141,35 @@ def load_challenge(
     )
     if regroup:
         rebuild(db, challenge_id=challenge.id)
+    after = _loaded_of(challenge)
+    _record_change(
+        db,
+        by=None,  # `manieval challenge load` (or the demo's) on the server's host
+        action="challenge.load",
+        target=challenge,
+        before=before or dict.fromkeys(after),
+        after=after,
+    )
     return challenge
+
+
+def _loaded_of(challenge: Challenge) -> dict[str, Any]:
+    """What a load sets, as its audit record compares it: a reload that changes nothing
+    leaves no record (the demo reloads its examples at every start)."""
+    return {
+        "suite_sha256": challenge.suite_hash,
+        "title": challenge.title,
+        "evaluator_image": challenge.evaluator_image,
+        **_settings_of(challenge),
+        "phases": {phase.name: _phase_loaded(phase) for phase in challenge.phases},
+    }
+
+
+def _phase_loaded(phase: Phase) -> dict[str, Any]:
+    counts, final_choice, after_close, board = _rules_of(phase)
+    rules = {"counts": counts, "final_choice": final_choice, "after_close": after_close}
+    rules |= {"board": board, "significance_level": phase.significance_level}
+    return {**_dates_of(phase), **rules}
 
 
 def _rules_of(phase: Phase | SuitePhase) -> tuple[str, bool, str, str]:
@@ -255,16 +283,7 @@ def update_challenge(
 ) -> Challenge:
     """Change the challenge's quotas or team mode (None: as it is); a change of team mode
     recomputes its boards. Audited with the old and new values of what changed."""
-    problems = {
-        name: f"a whole number from 1 to {QUOTA_MAX}"
-        for name, value in (
-            ("quota_per_day", quota_per_day),
-            ("quota_concurrent", quota_concurrent),
-        )
-        if value is not None and not 1 <= value <= QUOTA_MAX
-    }
-    if problems:
-        raise Invalid("the challenge's settings are not valid", fields=problems)
+    _check_quotas(quota_per_day=quota_per_day, quota_concurrent=quota_concurrent)
     challenge = get_challenge(db, slug=slug)
     before = _settings_of(challenge)
     if quota_per_day is not None:
@@ -282,6 +301,18 @@ def update_challenge(
         after=_settings_of(challenge),
     )
     return challenge
+
+
+def _check_quotas(**quotas: int | None) -> None:
+    """Invalid unless each quota given is a whole number from 1 to `QUOTA_MAX`."""
+    problems = {
+        name: f"a whole number from 1 to {QUOTA_MAX}"
+        for name, value in quotas.items()
+        if value is not None and not 1 <= value <= QUOTA_MAX
+    }
+    if problems:
+        named = ", ".join(f"{name} must be {want}" for name, want in problems.items())
+        raise Invalid(f"the challenge's settings are not valid: {named}", fields=problems)
 
 
 def _settings_of(challenge: Challenge) -> dict[str, Any]:

@@ -87,7 +87,7 @@ def test_moderation_commands_need_a_reason_and_are_recorded_as_the_command_line(
     assert f"submission {done}: queued again as attempt 2" in said
     assert admin("rerun", str(done))[0] == 1  # it has not ended
     with session(env) as db:
-        records = audit.records(db)
+        records = audit.records(db, target_kind="submission")
         assert [(r.action, r.actor, r.reason) for r in records] == [
             ("submission.rerun", ACTOR, "flaky node"),
             ("submission.unhide", ACTOR, "not one"),
@@ -158,7 +158,7 @@ def test_publish_token_is_for_the_services_namespace_only_and_recorded(
     assert code == 2
     assert "publishes only under manieval/" in said
     with session(env) as db:
-        (record,) = audit.records(db)
+        (record,) = audit.records(db, target_kind="repository")
         assert (record.action, record.actor, record.reason) == (
             "registry.publish_token",
             ACTOR,

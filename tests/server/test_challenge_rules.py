@@ -13,6 +13,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from evaluator.suite import load_suite
+from server import audit
 from server.challenges.service import (
     ChallengeOptions,
     close_phase,
@@ -20,7 +21,7 @@ from server.challenges.service import (
     load_challenge,
     publish_board,
 )
-from server.kit.errors import Conflict
+from server.kit.errors import Conflict, Invalid
 from server.leaderboard.late import post_deadline_board
 from server.leaderboard.snapshot import Snapshots
 from server.leaderboard.visibility import as_seen_by
@@ -84,6 +85,56 @@ def test_the_phase_stores_the_suites_rules(db: Session, tmp_path: Path) -> None:
         "refuse",
         "public",
     )
+
+
+def test_a_load_is_audited_with_what_it_changed_and_a_reload_of_the_same_is_not(
+    db: Session, tmp_path: Path
+) -> None:
+    challenge = _challenge(db, tmp_path)
+    (created,) = audit.records(db, action="challenge.load")
+    assert (created.target_kind, created.target_id, created.challenge_id) == (
+        "challenge",
+        challenge.id,
+        challenge.id,
+    )
+    assert created.actor.startswith("cli:")
+    assert created.actor_id is None
+    assert created.detail is not None
+    assert created.detail["new"]["suite_sha256"] == challenge.suite_hash
+    assert created.detail["new"]["quota_per_day"] == 50
+    assert set(created.detail["new"]["phases"]) == {"dev", "test"}
+
+    _challenge(db, tmp_path)  # the same suite, the same options
+    assert len(audit.records(db, action="challenge.load")) == 1
+
+    options = ChallengeOptions(quota_per_day=7, quota_concurrent=50)
+    load_challenge(db, rules_suite(tmp_path, "counts: best"), options, seed_secret="s" * 32)
+    changed = audit.records(db, action="challenge.load")[0]
+    assert changed.detail is not None
+    assert set(changed.detail["old"]) == set(changed.detail["new"]) == {"quota_per_day", "phases"}
+    assert (changed.detail["old"]["quota_per_day"], changed.detail["new"]["quota_per_day"]) == (
+        50,
+        7,
+    )
+    was, now = changed.detail["old"]["phases"]["test"], changed.detail["new"]["phases"]["test"]
+    assert (was["counts"], was["board"], now["counts"], now["board"]) == (
+        "last",
+        "hidden",
+        "best",
+        "public",
+    )
+
+
+@pytest.mark.parametrize(
+    ("quotas", "named"),
+    [({"quota_per_day": 0}, "quota_per_day"), ({"quota_concurrent": 10_001}, "quota_concurrent")],
+)
+def test_a_load_refuses_the_quotas_the_console_refuses(
+    db: Session, tmp_path: Path, quotas: dict[str, int], named: str
+) -> None:
+    with pytest.raises(Invalid, match=f"{named} must be a whole number from 1 to 10000") as refused:
+        load_challenge(db, rules_suite(tmp_path), ChallengeOptions(**quotas), seed_secret="s" * 32)
+    assert set(refused.value.fields or {}) == {named}
 
 
 def test_the_last_submission_counts_where_the_phase_says_last(db: Session, tmp_path: Path) -> None:

@@ -65,7 +65,7 @@ def test_admin_commands_disable_enable_verify_and_list_accounts(data: Path, db: 
     bob = db.scalar(select(User).where(User.username == "bob"))
     assert bob is not None
     assert bob.email_verified
-    records = audit.records(db)
+    records = audit.records(db, target_kind="user")
     assert [r.action for r in records] == ["user.verify", "user.enable", "user.disable"]
     assert {r.actor for r in records} == {audit.command_line_actor()}
 

@@ -290,7 +290,10 @@ def test_audit_records_filter_by_challenge_and_action_and_page_by_id(
     second = judge.get(f"/admin/audit?challenge=server-tiny&before={ids[2]}").text
     assert "reason number 1" in second
     assert "reason number 0" in second
-    assert "Older" not in second
+    assert f'href="/admin/audit?challenge=server-tiny&amp;before={ids[4]}"' in second
+    third = judge.get(f"/admin/audit?challenge=server-tiny&before={ids[4]}").text
+    assert "challenge.load" in third  # the oldest: the challenge's load, from the command line
+    assert "Older" not in third
     opened = judge.get("/admin/audit?action=phase.open").text
     assert "reason number 3" in opened
     assert "reason number 2" not in opened
