@@ -21,7 +21,7 @@ from evaluator.suite import Phase as SuitePhase
 from evaluator.suite import PublicSeeds, Suite, load_suite, phase_seeds, seed_commitment
 from server import audit
 from server.challenges.evaluator_image import chosen_evaluator_image
-from server.challenges.tracks import join_group
+from server.challenges.tracks import head_of, join_group
 from server.challenges.verification import Unverified, suite_verification
 from server.kit.errors import Conflict, Invalid, NotFound
 from server.models import Challenge, Phase, User, utcnow
@@ -87,7 +87,7 @@ def load_challenge(
         .where(Challenge.slug == suite.name)
     )
     kept_versions = {} if challenge is None else suite_of(challenge).package_versions
-    before = None if challenge is None else _loaded_of(challenge)
+    before = {} if challenge is None else _loaded_of(db, challenge)
     if challenge is None:
         challenge = Challenge(slug=suite.name)
         db.add(challenge)
@@ -125,8 +125,11 @@ def load_challenge(
             regroup = True
         phase.public_seeds = isinstance(spec.seeds, PublicSeeds)
         phase.seed_commitment = commitment(suite, name, seed_secret)
-        phase.opens_at = options.opens.get(name, phase.opens_at)
-        phase.closes_at = options.closes.get(name, phase.closes_at)
+        # In UTC, as the database gives them back (a reload then compares like with like).
+        if name in options.opens:
+            phase.opens_at = _utc(options.opens[name], f"opens of {name}")
+        if name in options.closes:
+            phase.closes_at = _utc(options.closes[name], f"closes of {name}")
         if phase.opens_at and phase.closes_at and phase.closes_at <= phase.opens_at:
             raise Invalid(f"phase {name!r} closes before it opens")
     for gone in existing.values():  # phases dropped from the suite
@@ -141,27 +144,33 @@ def load_challenge(
     )
     if regroup:
         rebuild(db, challenge_id=challenge.id)
-    after = _loaded_of(challenge)
+    after = _loaded_of(db, challenge)
+    every = [*before, *(name for name in after if name not in before)]
     _record_change(
         db,
         by=None,  # `manieval challenge load` (or the demo's) on the server's host
         action="challenge.load",
         target=challenge,
-        before=before or dict.fromkeys(after),
-        after=after,
+        before={name: before.get(name) for name in every},  # a new challenge or phase: None
+        after={name: after.get(name) for name in every},  # a phase dropped: None
     )
     return challenge
 
 
-def _loaded_of(challenge: Challenge) -> dict[str, Any]:
-    """What a load sets, as its audit record compares it: a reload that changes nothing
-    leaves no record (the demo reloads its examples at every start)."""
+def _loaded_of(db: DB, challenge: Challenge) -> dict[str, Any]:
+    """What a load sets, as its audit record compares it (a phase's under ``phase NAME``): a
+    reload that changes nothing leaves no record (the demo reloads its examples at every
+    start)."""
+    head = head_of(db, challenge)
     return {
         "suite_sha256": challenge.suite_hash,
         "title": challenge.title,
         "evaluator_image": challenge.evaluator_image,
         **_settings_of(challenge),
-        "phases": {phase.name: _phase_loaded(phase) for phase in challenge.phases},
+        "track": challenge.track,
+        "track_of": None if head is challenge else head.slug,
+        "quota_shared": head.quota_shared,  # the group's, held by its head
+        **{f"phase {phase.name}": _phase_loaded(phase) for phase in challenge.phases},
     }
 
 

@@ -46,7 +46,7 @@ def plain_http(settings: Settings, domain: str) -> bool:
 def loopback_domain(domain: str) -> bool:
     """Whether a registry's ``HOST[:PORT]`` is on this machine: ``localhost`` or a loopback
     address (127.0.0.0/8, ``[::1]``); a name that merely begins with ``127.`` is not."""
-    host = domain.rsplit(":", 1)[0] if not domain.endswith("]") else domain
+    host = domain.lower().rsplit(":", 1)[0] if not domain.endswith("]") else domain
     host = host.strip("[]")
     if host == "localhost":
         return True

@@ -23,7 +23,7 @@ def test_loopback_names_and_addresses_are_this_machine_for_the_cli_and_the_serve
 ) -> None:
     assert is_loopback(f"http://{domain}/")
     assert is_loopback_domain(domain)
-    assert loopback_domain(domain.lower())
+    assert loopback_domain(domain)
 
 
 @pytest.mark.parametrize("domain", ANOTHER)

@@ -5,6 +5,7 @@ final choice and the close holding under concurrent writers on Postgres."""
 from __future__ import annotations
 
 import threading
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,7 @@ from server.challenges.service import (
     ChallengeOptions,
     close_phase,
     get_challenge,
+    get_phase,
     load_challenge,
     publish_board,
 )
@@ -102,7 +104,12 @@ def test_a_load_is_audited_with_what_it_changed_and_a_reload_of_the_same_is_not(
     assert created.detail is not None
     assert created.detail["new"]["suite_sha256"] == challenge.suite_hash
     assert created.detail["new"]["quota_per_day"] == 50
-    assert set(created.detail["new"]["phases"]) == {"dev", "test"}
+    assert created.detail["new"]["phase test"]["counts"] == "last"
+    assert created.detail["old"]["phase test"] is None  # a new challenge: nothing before
+    assert {name for name in created.detail["new"] if name.startswith("phase ")} == {
+        "phase dev",
+        "phase test",
+    }
 
     _challenge(db, tmp_path)  # the same suite, the same options
     assert len(audit.records(db, action="challenge.load")) == 1
@@ -111,18 +118,65 @@ def test_a_load_is_audited_with_what_it_changed_and_a_reload_of_the_same_is_not(
     load_challenge(db, rules_suite(tmp_path, "counts: best"), options, seed_secret="s" * 32)
     changed = audit.records(db, action="challenge.load")[0]
     assert changed.detail is not None
-    assert set(changed.detail["old"]) == set(changed.detail["new"]) == {"quota_per_day", "phases"}
+    assert (
+        set(changed.detail["old"])
+        == set(changed.detail["new"])
+        == {
+            "quota_per_day",
+            "phase test",  # only the phase that changed
+        }
+    )
     assert (changed.detail["old"]["quota_per_day"], changed.detail["new"]["quota_per_day"]) == (
         50,
         7,
     )
-    was, now = changed.detail["old"]["phases"]["test"], changed.detail["new"]["phases"]["test"]
+    was, now = changed.detail["old"]["phase test"], changed.detail["new"]["phase test"]
     assert (was["counts"], was["board"], now["counts"], now["board"]) == (
         "last",
         "hidden",
         "best",
         "public",
     )
+
+
+def test_a_reload_with_dates_in_another_zone_is_the_same_load(
+    sessions: sessionmaker[Session], tmp_path: Path
+) -> None:
+    opens = datetime(2027, 1, 31, 12, 0, tzinfo=timezone(timedelta(hours=2)))
+    options = ChallengeOptions(opens={"test": opens})
+    for _ in range(2):  # each in a session of its own: the second reads the dates back
+        with sessions() as db:
+            load_challenge(db, rules_suite(tmp_path), options, seed_secret="s" * 32)
+            db.commit()
+    with sessions() as db:
+        (loaded,) = audit.records(db, action="challenge.load")
+        assert loaded.detail is not None
+        assert loaded.detail["new"]["phase test"]["opens_at"] == "2027-01-31T10:00:00+00:00"
+        test = get_phase(get_challenge(db, slug="server-tiny"), "test")
+        assert test.opens_at == opens
+
+
+def test_joining_a_group_and_sharing_its_quota_are_in_the_load_record(
+    sessions: sessionmaker[Session], tmp_path: Path
+) -> None:
+    track = tmp_path / "server-tiny-visual.yaml"
+    track.write_text(SUITE.read_text().replace("name: server-tiny", "name: server-tiny-visual"))
+    with sessions() as db:
+        load_challenge(db, SUITE, ChallengeOptions(track="state"), seed_secret="s" * 32)
+        joined = ChallengeOptions(track="visual", track_of="server-tiny", quota_shared=True)
+        load_challenge(db, track, joined, seed_secret="s" * 32)
+        db.commit()
+        record = audit.records(db, action="challenge.load")[0]
+        assert record.detail is not None
+        new = record.detail["new"]
+        assert (new["track"], new["track_of"], new["quota_shared"]) == (
+            "visual",
+            "server-tiny",
+            True,
+        )
+        load_challenge(db, track, ChallengeOptions(quota_shared=False), seed_secret="s" * 32)
+        record = audit.records(db, action="challenge.load")[0]
+        assert record.detail == {"old": {"quota_shared": True}, "new": {"quota_shared": False}}
 
 
 @pytest.mark.parametrize(
