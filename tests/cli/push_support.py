@@ -20,7 +20,13 @@ from server.kit.db import make_engine, session_factory, upgrade
 from server.kit.settings import Settings
 from tests.cli.conftest import REPO, LiveServer, Participant, free_port, running_server
 from tests.server.registry_fixture import require_tool
-from tests.worker.container_fixtures import BASE_BUILD, BASE_IMAGE, CONTAINERS_CONF, require_podman
+from tests.worker.container_fixtures import (
+    BASE_BUILD,
+    BASE_IMAGE,
+    CONTAINERS_CONF,
+    require_podman,
+    untag,
+)
 from tests.worker.openpi_image import build_openpi_image, visual_track_in_small
 
 TEMPLATE = REPO / "examples" / "policy-template"
@@ -131,13 +137,14 @@ TAG = uuid.uuid4().hex[:8]  # sessions at once on one image store never share a 
 
 
 INSPECT_NAMES = "{{json .RepoTags}} {{json .RepoDigests}}"
+ENGINE_ENV = {**os.environ, "CONTAINERS_CONF": str(CONTAINERS_CONF)}
 
 
 def remove_images(registry: str, *, local: list[str]) -> None:
-    """Untag what this module built, pushed and pulled, by reference only: other sessions on
-    the same image store may hold images of the same content under their own names."""
-    for reference in local:
-        subprocess.run(["podman", "rmi", reference], capture_output=True, timeout=60)
+    """Take out the names this module gave (its local tags) and those its registry's images got
+    (pushed, pulled), by name only (`untag`): other sessions on the same image store may hold
+    images of the same content under their own names."""
+    untag(ENGINE_ENV, *local)
     listed = subprocess.run(
         ["podman", "images", "--format", "{{.ID}} {{.Repository}}"],
         capture_output=True,
@@ -151,9 +158,8 @@ def remove_images(registry: str, *, local: list[str]) -> None:
             text=True,
             timeout=60,
         ).stdout.split()
-        references = [r for part in names for r in json.loads(part) if r.startswith(registry)]
-        for reference in references:
-            subprocess.run(["podman", "rmi", reference], capture_output=True, timeout=60)
+        references = [r for part in names for r in json.loads(part) if r.startswith(f"{registry}/")]
+        untag(ENGINE_ENV, *references)
 
 
 def _alive(pid_file: Path) -> bool:

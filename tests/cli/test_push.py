@@ -277,7 +277,9 @@ def test_the_getting_started_page_takes_a_fresh_virtualenv_to_a_ranked_submissio
     # The base comes from the service's registry, published there at its start, pinned.
     build = next(b for b in blocks if b.step == "build")
     assert f"--build-arg BASE={embedded.registry}/manieval/policy-base@sha256:" in build.lines[0]
-    BUILT.append("localhost/my-policy:v1")  # the page's tag, removed with the module's images
+    # The page's tag, my-policy:v1, made this session's own (sessions at once share the image
+    # store), and removed with the module's images.
+    BUILT.append(f"localhost/my-policy:{TAG}")
     sourced: list[str] = []  # `. manieval-env/bin/activate`: it holds for the lines after it
     said: dict[str, str] = {}
     for block in blocks:
@@ -285,6 +287,7 @@ def test_the_getting_started_page_takes_a_fresh_virtualenv_to_a_ranked_submissio
         env = terminal_env(embedded, tmp_path, simulator=simulator)
         for line in block.lines:
             line = line.replace("NAME", "starter")  # the placeholder the page asks to fill
+            line = line.replace("my-policy:v1", f"my-policy:{TAG}")
             if block.needs == "source-install" and not line.startswith(("curl ", "tar ")):
                 # `make install-evaluator` of the source (a part of this suite's own install)
                 # is what gives the simulator's steps this virtualenv: the source is downloaded

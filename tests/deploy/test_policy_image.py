@@ -16,11 +16,9 @@ import subprocess
 import tempfile
 import uuid
 from collections.abc import Iterator
-from contextlib import closing
 from pathlib import Path
 
 import pytest
-from docker.errors import DockerException
 
 from evaluator.evaluation import evaluate
 from evaluator.plan import build_plan
@@ -38,6 +36,7 @@ from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
     TEMPLATE,
     ContainerEngine,
     fixture_container_engine,
+    untag,
 )
 from worker.containers import POLICY_UID, ContainerImage
 
@@ -100,9 +99,7 @@ def policy_base(container_engine: ContainerEngine, session: str) -> Iterator[str
         timeout=900,
     )
     yield tag
-    # This name only: `podman untag IMAGE` alone removes every name of the image, and another
-    # session's build of the same Dockerfile is the same image under its own name.
-    container_engine.podman("untag", tag, tag)
+    untag(container_engine.env, tag)
 
 
 def test_the_base_runs_the_sdks_dependencies_as_the_policy_user_without_network(
@@ -161,12 +158,7 @@ def test_the_template_on_the_base_scores_like_the_in_process_run(
     try:
         in_container = evaluate(plan, source)
     finally:
-        with closing(container_engine.client()) as client:
-            for reference in (local, pinned):
-                try:
-                    client.images.remove(reference)  # this reference only, never by ID
-                except DockerException:
-                    pass
+        untag(container_engine.env, local, pinned)
     in_process = evaluate(plan, LocalDirectory(SCRIPTED))
     assert in_container.status == "completed", in_container.abort
     assert episode_records(in_container) == episode_records(in_process)

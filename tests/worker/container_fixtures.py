@@ -5,7 +5,14 @@ configured by ``docker/containers.conf`` (through CONTAINERS_CONF, so nothing gl
 and trusting the session's plain-HTTP ``registry``. ``policy_images`` builds
 ``docker/policy-base`` once per machine (Podman's image store keeps it), the policy template on
 top with the SDK copied in, and publishes policies as images pushed to the registry and named
-by digest. A test module imports
+by digest.
+
+Sessions at once (pytest's workers, a developer's run beside CI's) share one image store, and
+the build cache gives equal builds one image under several sessions' names. So a session only
+ever adds names of its own (a session tag) and takes away exactly those (`untag`): it never
+re-tags a shared name, and never removes an image by ID or by a digest reference, which Podman
+resolves to any image with that digest and deletes when it holds one name, another session's.
+A test module imports
 the fixtures by their function names::
 
     from tests.server.registry_fixture import fixture_registry  # noqa: F401 - pytest fixture
@@ -22,7 +29,7 @@ import shutil
 import subprocess
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,9 +49,25 @@ BASE_BUILD = REPO / "docker" / "policy-base" / "build.sh"
 BASE_IMAGE = LOCAL_POLICY_BASE
 TEMPLATE = REPO / "examples" / "policy-template"
 SDK = REPO / "evaluator" / "sdk" / "manieval_sdk"
-TEMPLATE_IMAGE = "localhost/manieval-test/template:latest"
 INSTALL_HINT = "apt-get install -y podman runc debootstrap"
 _STARTUP_SECONDS = 20.0
+
+
+def untag(env: Mapping[str, str], *names: str) -> None:
+    """Take these names out of the image store and nothing else: `podman untag NAME NAME` never
+    deletes an image (what no name holds any more stays as the build cache). Never `rmi` a
+    name: `rmi REPO@DIGEST` finds any image with that digest, whatever its names, and deletes
+    it where the name it was asked for is not there and one other name is left."""
+    for name in names:
+        # A name not in the store (never pulled, already gone) is not an error here.
+        subprocess.run(
+            ["podman", "untag", name, name], env=dict(env), capture_output=True, timeout=60
+        )
+
+
+def session_tag() -> str:
+    """A tag no other session on this machine's image store uses."""
+    return uuid.uuid4().hex[:8]
 
 
 def require_podman() -> None:
@@ -141,19 +164,22 @@ class PolicyImages:
     engine: ContainerEngine
     registry: LocalRegistry
     work: Path
+    session: str
     published: dict[str, str] = field(default_factory=dict)
-    # Tags and image IDs of their own: sessions running at once (a developer's and CI's) on one
-    # image store must never untag or delete each other's images.
-    session: str = field(default_factory=lambda: uuid.uuid4().hex[:8])
 
     def local_tag(self, name: str) -> str:
         return f"localhost/manieval-test/{name}:{self.session}"
+
+    @property
+    def template(self) -> str:
+        """This session's name of the policy template (docs: examples/policy-template)."""
+        return self.local_tag("template")
 
     def publish(self, name: str, policy_source: str) -> str:
         """Build the template with this `policy.py`, push it; the image's pinned reference."""
         return self.publish_built(
             name,
-            f"FROM {TEMPLATE_IMAGE}\nCOPY policy.py /opt/policy/policy.py\n",
+            f"FROM {self.template}\nCOPY policy.py /opt/policy/policy.py\n",
             {"policy.py": policy_source},
         )
 
@@ -202,26 +228,25 @@ def fixture_policy_images(
     shutil.copytree(TEMPLATE, context)
     # As the template's README says: the SDK is copied next to the Dockerfile.
     shutil.copytree(SDK, context / "manieval_sdk", ignore=shutil.ignore_patterns("__pycache__"))
+    images = PolicyImages(
+        engine=container_engine, registry=registry, work=work, session=session_tag()
+    )
+    # Cached: an equal build by another session is the same image under its own name.
     container_engine.podman(
         "build",
         "--quiet",
         "--build-arg",
         f"BASE={BASE_IMAGE}",
         "--tag",
-        TEMPLATE_IMAGE,
+        images.template,
         str(context),
     )
-    images = PolicyImages(engine=container_engine, registry=registry, work=work)
     yield images
-    # The base and the template stay as the next session's cache; the policies go, with the
-    # names they got from this session's registry.
-    with closing(container_engine.client()) as client:
-        for name, pinned in images.published.items():
-            for reference in (images.local_tag(name), pinned):
-                try:
-                    client.images.remove(reference)  # this reference only, never by ID
-                except DockerException:
-                    pass
+    # The base and the template's image stay as the next session's cache; this session's names
+    # go: the template's, the policies' and those they got from this session's registry.
+    untag(container_engine.env, images.template)
+    for name, pinned in images.published.items():
+        untag(container_engine.env, images.local_tag(name), pinned)
 
 
 def policy_containers(

@@ -25,7 +25,6 @@ from tests.worker.container_fixtures import BASE_IMAGE, REPO, SDK
 
 EXAMPLE = REPO / "examples" / "policies" / "openpi-server"
 REQUIREMENTS = EXAMPLE / "requirements.txt"
-OPENPI_IMAGE = "localhost/manieval-test/openpi-server:latest"
 UNWANTED = shutil.ignore_patterns("__pycache__", "wheels", "manieval_sdk")
 
 
@@ -70,8 +69,9 @@ def openpi_wheels() -> Path:
     return wheels
 
 
-def build_openpi_image(env: Mapping[str, str], work: Path, *, tag: str = OPENPI_IMAGE) -> str:
-    """The example's image, tagged `tag`, on the policy base image (which must exist)."""
+def build_openpi_image(env: Mapping[str, str], work: Path, *, tag: str) -> str:
+    """The example's image, tagged `tag` (a name of the caller's session only: tests on one
+    image store never re-tag a shared name), on the policy base image (which must exist)."""
     context = work / "openpi-server-context"
     shutil.rmtree(context, ignore_errors=True)
     shutil.copytree(EXAMPLE, context, ignore=UNWANTED)

@@ -33,6 +33,8 @@ from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
     fixture_container_engine,
     fixture_policy_images,
     policy_containers,
+    session_tag,
+    untag,
 )
 from tests.worker.docker_double import docker_double
 from worker.containers import (
@@ -261,17 +263,43 @@ def test_scripted_policy_scores_the_same_in_a_container_as_in_process(
     assert policy_containers(container_engine, submission=ids[0], attempt=ids[1]) == []
 
 
+def test_a_sessions_cleanup_leaves_another_sessions_equal_image_in_the_store(
+    container_engine: ContainerEngine, policy_images: PolicyImages
+) -> None:
+    """What failed on fresh machines: another session's equal build (the build cache gives it
+    this session's template image) is pushed and pulled by digest, and its cleanup asked Podman
+    to remove `REPO@DIGEST`, which finds the template's image by that digest and deleted it."""
+    other = f"localhost/manieval-test/other-session:{session_tag()}"
+    container_engine.podman("tag", policy_images.template, other)
+    remote = f"{policy_images.registry.domain}/manieval-test/other-session"
+    digest_file = policy_images.work / "other-session.digest"
+    container_engine.podman(
+        *("push", "--quiet", "--tls-verify=false", "--digestfile", str(digest_file)),
+        *(other, f"docker://{remote}:latest"),
+    )
+    pinned = f"{remote}@{digest_file.read_text().strip()}"
+    container_engine.podman("pull", "--quiet", "--tls-verify=false", pinned)
+    # All the other session's names, and a digest reference that names no image at all.
+    untag(container_engine.env, other, pinned, f"{remote}-never-pulled@{pinned.split('@')[1]}")
+    with closing(container_engine.client()) as client:
+        assert policy_images.template in client.images.get(policy_images.template).tags
+        with pytest.raises(ImageNotFound):
+            client.images.get(other)
+
+
 def test_image_is_pulled_from_the_registry_by_digest(
     container_engine: ContainerEngine,
     policy_images: PolicyImages,
     attempts: Iterator[tuple[int, int]],
 ) -> None:
-    image = policy_images.publish("sleeper", SLEEPER)
+    # An image of this test's own (built --no-cache: no other session has it), so that taking
+    # it out of the store leaves every other session's images where they are.
+    image = policy_images.publish("pulled-by-digest", SLEEPER)
+    local = policy_images.local_tag("pulled-by-digest")
     with closing(container_engine.client()) as client:
-        try:
-            client.images.remove(client.images.get(image).id, force=True)
-        except ImageNotFound:
-            pass  # never pulled by this reference yet
+        own = client.images.get(local).id  # by its name: a digest may find another's image
+        untag(container_engine.env, local, image)
+        container_engine.podman("image", "rm", own)  # no name left, no force needed
         with pytest.raises(ImageNotFound):
             client.images.get(image)
         container_source(image, next(attempts), container_engine).pull()

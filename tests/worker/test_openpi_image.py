@@ -8,6 +8,7 @@ import json
 import random
 import shutil
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -24,6 +25,7 @@ from tests.worker.container_fixtures import (  # noqa: F401 - pytest fixtures
     fixture_container_engine,
     fixture_policy_images,
     policy_containers,
+    untag,
 )
 from tests.worker.openpi_image import EXAMPLE, build_openpi_image, visual_track_in_small
 from worker.containers import ContainerImage
@@ -45,9 +47,11 @@ def openpi_image(
     policy_images: PolicyImages,
     container_engine: ContainerEngine,
     tmp_path_factory: pytest.TempPathFactory,
-) -> str:
-    """The example's image, built as its README says (cached), as a local tag."""
-    return build_openpi_image(container_engine.env, tmp_path_factory.mktemp("openpi"))
+) -> Iterator[str]:
+    """The example's image, built as its README says (cached), under this module's own tag."""
+    tag = policy_images.local_tag("openpi-example")
+    yield build_openpi_image(container_engine.env, tmp_path_factory.mktemp("openpi"), tag=tag)
+    untag(container_engine.env, tag)
 
 
 @pytest.fixture
